@@ -1,0 +1,35 @@
+"""Exception types of the toolkit. Every message is one sentence naming the problem and the value."""
+
+from __future__ import annotations
+
+
+class TwistError(Exception):
+    """Base class of every error the toolkit raises on bad input or bad data."""
+
+
+class NotADatasetError(TwistError):
+    """The path is not a twist dataset or shard."""
+
+
+class FormatVersionError(TwistError):
+    """The store was written in a format version this library cannot read."""
+
+
+class SchemaMismatchError(TwistError):
+    """Shards of one dataset, or an episode and its shard, disagree on the schema."""
+
+
+class InvalidEpisodeError(TwistError):
+    """An episode handed to the writer breaks the format's rules (shapes, dtypes, flags, values)."""
+
+
+class DatasetCorruptError(TwistError):
+    """Stored data is missing, truncated or inconsistent."""
+
+
+class SamplerConfigError(TwistError):
+    """A sampler or reader request cannot be served by this dataset (window too long, bad view)."""
+
+
+class ShardLockedError(TwistError):
+    """Another process is already writing this shard."""

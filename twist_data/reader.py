@@ -1,0 +1,394 @@
+"""Read a matching dataset: a folder of shards (or one shard) opened as one.
+
+Readers trust only each shard's commit record (``twist.commit`` in its root ``zarr.json``):
+data beyond it belongs to an episode still being written and is invisible. A dataset that is
+still being written can be re-read with :meth:`MatchingDataset.refresh`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import zarr
+
+from twist_data.errors import (
+    DatasetCorruptError,
+    NotADatasetError,
+    SamplerConfigError,
+    SchemaMismatchError,
+)
+from twist_data.schema import (
+    ATTRS_KEY,
+    EPISODE_COLUMNS,
+    POLICY_CODES,
+    DatasetSpec,
+    Episode,
+    check_format,
+    step_arrays,
+)
+from twist_data.storage import FrameReader, StorageLayout, frame_decoder
+
+log = logging.getLogger(__name__)
+
+
+def _open_group(path: Path) -> zarr.Group:
+    if not (path / "zarr.json").is_file():
+        raise NotADatasetError(f"{path} is not a twist dataset shard (no zarr.json)")
+    try:
+        return zarr.open_group(path, mode="r")
+    except Exception as exc:  # zarr raises a variety of types for unreadable metadata
+        raise DatasetCorruptError(f"shard {path} has unreadable metadata: {exc}") from None
+
+
+class _ZarrFrameReader:
+    """Fallback frame reader through zarr's API, for layouts FrameReader does not know."""
+
+    def __init__(self, array: zarr.Array) -> None:
+        self.array = array
+
+    def read_into(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
+                  rows: np.ndarray) -> None:
+        for row, t, v in zip(rows.tolist(), steps.tolist(), views.tolist(), strict=True):
+            out[row] = self.array[t, v]
+
+    def close(self) -> None:
+        pass
+
+
+class _RowsFrameReader:
+    """Adapts :class:`FrameReader` to decode into arbitrary rows of ``out``."""
+
+    def __init__(self, reader: FrameReader) -> None:
+        self.reader = reader
+
+    def read_into(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
+                  rows: np.ndarray) -> None:
+        if rows.size and rows[0] == 0 and np.array_equal(rows, np.arange(rows.size)):
+            self.reader.read_into(steps, views, out[: rows.size])
+        else:
+            tmp = np.empty((rows.size, *out.shape[1:]), out.dtype)
+            self.reader.read_into(steps, views, tmp)
+            out[rows] = tmp
+
+    def close(self) -> None:
+        self.reader.close()
+
+
+class ShardReader:
+    """Read-only view of one shard's committed episodes."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.name = self.path.name.removesuffix(".zarr")
+        self._frames: Any = None
+        self._load_metadata()
+
+    def _load_metadata(self) -> None:
+        self._group = _open_group(self.path)
+        block = check_format(self._group.attrs, str(self.path))
+        self.format_version = int(block["format_version"])
+        self.spec = DatasetSpec.from_json(block["spec"])
+        self.layout = StorageLayout(**block["layout"])
+        self.attrs = dict(block)
+        commit = block["commit"]
+        self.n_episodes = int(commit["n_episodes"])
+        self.n_steps = int(commit["n_steps"])
+        self._arrays: dict[str, zarr.Array] = {}
+        self._table = self._read_table()
+
+    def array(self, key: str) -> zarr.Array:
+        """The zarr array at ``key`` (e.g. ``data/state``), with a clear error if missing."""
+        arr = self._arrays.get(key)
+        if arr is None:
+            try:
+                arr = self._group[key]
+            except KeyError:
+                raise DatasetCorruptError(f"shard {self.path}: array {key} is missing") from None
+            if not isinstance(arr, zarr.Array):
+                raise DatasetCorruptError(f"shard {self.path}: {key} is not an array")
+            self._arrays[key] = arr
+        return arr
+
+    def _read_table(self) -> dict[str, np.ndarray]:
+        table = {}
+        keys = [f"meta/{c}" for c in EPISODE_COLUMNS]
+        keys += [f"meta/dr/{p.name}" for p in self.spec.episode_dr_params]
+        for key in keys:
+            arr = self.array(key)
+            if arr.shape[0] < self.n_episodes:
+                raise DatasetCorruptError(
+                    f"shard {self.path}: {key} holds {arr.shape[0]} episodes, "
+                    f"but {self.n_episodes} are committed"
+                )
+            table[key.removeprefix("meta/")] = arr[: self.n_episodes]
+        ends = table["episode_ends"]
+        if self.n_episodes and (ends[-1] != self.n_steps or np.any(np.diff(ends) <= 0)
+                                or ends[0] <= 0):
+            raise DatasetCorruptError(
+                f"shard {self.path}: meta/episode_ends is inconsistent with the commit record "
+                f"({self.n_steps} steps)"
+            )
+        return table
+
+    @property
+    def episode_ends(self) -> np.ndarray:
+        return self._table["episode_ends"]
+
+    @property
+    def episode_starts(self) -> np.ndarray:
+        ends = self.episode_ends
+        return np.concatenate([[0], ends[:-1]]).astype(np.int64)
+
+    def episode_column(self, name: str) -> np.ndarray:
+        """A per-episode column (``episode_seed``, ``dr/<name>`` ...) for committed episodes."""
+        return self._table[name]
+
+    def read(self, key: str, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Committed steps ``[start, stop)`` of the per-step array ``key`` (e.g. ``state``)."""
+        stop = self.n_steps if stop is None else stop
+        if not 0 <= start <= stop <= self.n_steps:
+            raise SamplerConfigError(
+                f"shard {self.name}: step range [{start}, {stop}) is outside the "
+                f"{self.n_steps} committed steps"
+            )
+        arr = self.array(f"data/{key}")
+        if arr.shape[0] < self.n_steps:
+            raise DatasetCorruptError(
+                f"shard {self.path}: data/{key} holds {arr.shape[0]} steps, "
+                f"but {self.n_steps} are committed"
+            )
+        if key == "image":
+            out = np.empty((stop - start, *arr.shape[1:]), np.uint8)
+            k = self.spec.views
+            steps = np.repeat(np.arange(start, stop), k)
+            views = np.tile(np.arange(k), stop - start)
+            flat = out.reshape(-1, *arr.shape[2:])
+            self.frames.read_into(steps, views, flat, np.arange(flat.shape[0]))
+            return out
+        return arr[start:stop]
+
+    @property
+    def frames(self) -> Any:
+        """Frame reader with ``read_into(steps, views, out, rows)``; direct when possible."""
+        if self._frames is None:
+            arr = self.array("data/image")
+            decoder = frame_decoder(arr)
+            if decoder is None:
+                log.warning("shard %s: image layout not recognised, reading through zarr (slow)",
+                            self.path)
+                self._frames = _ZarrFrameReader(arr)
+            else:
+                reader = FrameReader(arr, self.path / "data" / "image", decoder,
+                                     int(arr.shards[0]))
+                self._frames = _RowsFrameReader(reader)
+        return self._frames
+
+    def episode(self, index: int) -> Episode:
+        """Episode ``index`` of this shard, every array read."""
+        if not 0 <= index < self.n_episodes:
+            raise SamplerConfigError(
+                f"shard {self.name} has {self.n_episodes} episodes; index {index} is out of range"
+            )
+        start, stop = int(self.episode_starts[index]), int(self.episode_ends[index])
+        data = {a.name: self.read(a.name, start, stop) for a in step_arrays(self.spec)}
+        dr = {k.removeprefix("dr/"): data.pop(k) for k in list(data) if k.startswith("dr/")}
+        return Episode(**data, dr=dr)
+
+    def refresh(self) -> bool:
+        """Re-read the commit record; returns True when new episodes were committed."""
+        old_episodes = self.n_episodes
+        if self._frames is not None:
+            # Shard files at the end may have been replaced by the writer: remap lazily.
+            self._frames.close()
+            self._frames = None
+        self._load_metadata()
+        return self.n_episodes != old_episodes
+
+    def disk_bytes(self) -> int:
+        return sum(f.stat().st_size for f in self.path.rglob("*") if f.is_file())
+
+
+def find_shards(path: Path) -> list[Path]:
+    """Shard folders of a dataset: ``path`` itself if it is a shard, else its ``*.zarr`` children."""
+    if not path.exists():
+        raise NotADatasetError(f"{path} does not exist")
+    if (path / "zarr.json").is_file():
+        return [path]
+    if not path.is_dir():
+        raise NotADatasetError(f"{path} is not a twist dataset (not a folder)")
+    shards = sorted(p for p in path.iterdir()
+                    if p.is_dir() and p.suffix == ".zarr" and not p.name.startswith("."))
+    if not shards:
+        raise NotADatasetError(f"{path} is not a twist dataset: it holds no shard (*.zarr folder)")
+    return shards
+
+
+@dataclass(frozen=True)
+class StepLocation:
+    """Where global steps live: shard index and step within the shard, arrays of equal shape."""
+
+    shard: np.ndarray
+    step: np.ndarray
+
+
+class MatchingDataset:
+    """All committed episodes of a dataset's shards, in shard-name order, as one sequence."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.shards = [ShardReader(p) for p in find_shards(self.path)]
+        self._check_schema()
+        self._columns: dict[str, np.ndarray] = {}
+        self._index()
+
+    def _check_schema(self) -> None:
+        ref = self.shards[0]
+        for shard in self.shards[1:]:
+            if shard.spec.schema_key() != ref.spec.schema_key():
+                diff = [k for k, v in ref.spec.schema_key().items()
+                        if shard.spec.schema_key()[k] != v]
+                raise SchemaMismatchError(
+                    f"shards {ref.name} and {shard.name} cannot form one dataset: they differ "
+                    f"in {', '.join(diff)}"
+                )
+
+    def _index(self) -> None:
+        steps = np.array([s.n_steps for s in self.shards], np.int64)
+        self.shard_offsets = np.concatenate([[0], np.cumsum(steps)]).astype(np.int64)
+        starts = [s.episode_starts + off for s, off in zip(self.shards, self.shard_offsets,
+                                                            strict=False)]
+        ends = [s.episode_ends + off for s, off in zip(self.shards, self.shard_offsets,
+                                                        strict=False)]
+        self.episode_starts = np.concatenate(starts) if starts else np.zeros(0, np.int64)
+        self.episode_ends = np.concatenate(ends) if ends else np.zeros(0, np.int64)
+        self._columns = {}
+
+    @property
+    def spec(self) -> DatasetSpec:
+        return self.shards[0].spec
+
+    @property
+    def n_episodes(self) -> int:
+        return int(self.episode_ends.size)
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.shard_offsets[-1])
+
+    @property
+    def episode_lengths(self) -> np.ndarray:
+        return self.episode_ends - self.episode_starts
+
+    def refresh(self) -> int:
+        """Pick up episodes committed (and shards created) since opening; returns how many."""
+        before = self.n_episodes
+        known = {s.path for s in self.shards}
+        for shard in self.shards:
+            shard.refresh()
+        for p in find_shards(self.path):
+            if p not in known:
+                self.shards.append(ShardReader(p))
+        self.shards.sort(key=lambda s: s.path.name)
+        self._check_schema()
+        self._index()
+        return self.n_episodes - before
+
+    def locate(self, steps: np.ndarray) -> StepLocation:
+        """Map global step indices (any shape) to (shard, step within shard)."""
+        shard = np.searchsorted(self.shard_offsets, steps, side="right") - 1
+        return StepLocation(shard, steps - self.shard_offsets[shard])
+
+    def column(self, key: str) -> np.ndarray:
+        """Per-step array ``key`` for every committed step, concatenated over shards ([N, ...]).
+
+        Low-dimensional arrays are small (about 100 bytes per step) and are kept in memory;
+        images are never loaded this way, use :meth:`read_frames`.
+        """
+        if key == "image":
+            raise SamplerConfigError("images are not loaded whole; use read_frames()")
+        col = self._columns.get(key)
+        if col is None:
+            names = {a.name for a in step_arrays(self.spec)}
+            if key not in names:
+                raise SamplerConfigError(f"unknown key {key!r}; valid: {', '.join(sorted(names))}")
+            col = np.concatenate([s.read(key) for s in self.shards])
+            self._columns[key] = col
+        return col
+
+    def read_frames(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray) -> None:
+        """Decode the frames of global ``steps`` [n] and ``views`` [n] into ``out`` [n, H, W, 3]."""
+        loc = self.locate(steps)
+        if len(self.shards) == 1:
+            self.shards[0].frames.read_into(loc.step, views, out, np.arange(steps.size))
+            return
+        for s in np.unique(loc.shard).tolist():
+            rows = np.flatnonzero(loc.shard == s)
+            self.shards[s].frames.read_into(loc.step[rows], views[rows], out, rows)
+
+    def episode(self, index: int) -> Episode:
+        """Global episode ``index`` (episodes numbered over shards in shard-name order)."""
+        if not 0 <= index < self.n_episodes:
+            raise SamplerConfigError(
+                f"dataset has {self.n_episodes} episodes; index {index} is out of range"
+            )
+        shard, local = self.episode_location(index)
+        return self.shards[shard].episode(local)
+
+    def episode_location(self, index: int) -> tuple[int, int]:
+        counts = np.cumsum([s.n_episodes for s in self.shards])
+        shard = int(np.searchsorted(counts, index, side="right"))
+        return shard, index - (int(counts[shard - 1]) if shard else 0)
+
+    def iter_episodes(self) -> Iterator[tuple[int, Episode]]:
+        for i in range(self.n_episodes):
+            yield i, self.episode(i)
+
+    def episodes(self) -> pd.DataFrame:
+        """One row per committed episode: shard, index, start, length, return and provenance."""
+        codes = {v: k for k, v in POLICY_CODES.items()}
+        frames = []
+        for shard in self.shards:
+            t = shard._table
+            frame = pd.DataFrame({
+                "shard": shard.name,
+                "episode": np.arange(shard.n_episodes),
+                "start": shard.episode_starts,
+                "length": shard.episode_ends - shard.episode_starts,
+                "return": t["episode_return"],
+                "seed": t["episode_seed"],
+                "policy": [codes.get(int(c), f"code {int(c)}") for c in t["episode_policy"]],
+                "teacher_step": t["episode_teacher_step"],
+                "env_step": t["episode_env_step"],
+                "committed": pd.to_datetime(t["episode_time"], unit="s", utc=True),
+            })
+            for p in self.spec.episode_dr_params:
+                if p.shape == ():
+                    frame[f"dr_{p.name}"] = t[f"dr/{p.name}"]
+            frames.append(frame)
+        table = pd.concat(frames, ignore_index=True)
+        table.index.name = "global_episode"
+        return table
+
+    def disk_bytes(self) -> int:
+        return sum(s.disk_bytes() for s in self.shards)
+
+
+def open_dataset(path: str | os.PathLike[str]) -> MatchingDataset:
+    """Open a dataset folder (or a single shard folder) for reading."""
+    return MatchingDataset(path)
+
+
+def read_attrs(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The ``twist`` attribute block of one shard, checked for format and version."""
+    group = _open_group(Path(path))
+    return dict(check_format(group.attrs, str(path)))
+
+
+__all__ = ["ATTRS_KEY", "MatchingDataset", "ShardReader", "open_dataset", "read_attrs"]
