@@ -62,25 +62,6 @@ class _ZarrFrameReader:
         pass
 
 
-class _RowsFrameReader:
-    """Adapts :class:`FrameReader` to decode into arbitrary rows of ``out``."""
-
-    def __init__(self, reader: FrameReader) -> None:
-        self.reader = reader
-
-    def read_into(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
-                  rows: np.ndarray) -> None:
-        if rows.size and rows[0] == 0 and np.array_equal(rows, np.arange(rows.size)):
-            self.reader.read_into(steps, views, out[: rows.size])
-        else:
-            tmp = np.empty((rows.size, *out.shape[1:]), out.dtype)
-            self.reader.read_into(steps, views, tmp)
-            out[rows] = tmp
-
-    def close(self) -> None:
-        self.reader.close()
-
-
 class ShardReader:
     """Read-only view of one shard's committed episodes."""
 
@@ -185,9 +166,8 @@ class ShardReader:
                             self.path)
                 self._frames = _ZarrFrameReader(arr)
             else:
-                reader = FrameReader(arr, self.path / "data" / "image", decoder,
-                                     int(arr.shards[0]))
-                self._frames = _RowsFrameReader(reader)
+                self._frames = FrameReader(arr, self.path / "data" / "image", decoder,
+                                           int(arr.shards[0]))
         return self._frames
 
     def episode(self, index: int) -> Episode:
@@ -322,15 +302,25 @@ class MatchingDataset:
             self._columns[key] = col
         return col
 
-    def read_frames(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray) -> None:
-        """Decode the frames of global ``steps`` [n] and ``views`` [n] into ``out`` [n, H, W, 3]."""
+    def read_frames(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
+                    rows: np.ndarray | None = None) -> None:
+        """Decode frame (global ``steps[i]``, ``views[i]``) into ``out[rows[i]]`` (out: [n, H, W, 3]).
+
+        ``rows`` defaults to ``0..n-1``.
+        """
+        rows = np.arange(steps.size) if rows is None else rows
+        if np.any(views < 0) or np.any(views >= self.spec.views):
+            bad = int(views[(views < 0) | (views >= self.spec.views)][0])
+            raise SamplerConfigError(
+                f"view index {bad} is out of range: the dataset has {self.spec.views} views"
+            )
         loc = self.locate(steps)
         if len(self.shards) == 1:
-            self.shards[0].frames.read_into(loc.step, views, out, np.arange(steps.size))
+            self.shards[0].frames.read_into(loc.step, views, out, rows)
             return
         for s in np.unique(loc.shard).tolist():
-            rows = np.flatnonzero(loc.shard == s)
-            self.shards[s].frames.read_into(loc.step[rows], views[rows], out, rows)
+            sel = loc.shard == s
+            self.shards[s].frames.read_into(loc.step[sel], views[sel], out, rows[sel])
 
     def episode(self, index: int) -> Episode:
         """Global episode ``index`` (episodes numbered over shards in shard-name order)."""

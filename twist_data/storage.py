@@ -208,21 +208,22 @@ class FrameReader:
             self._files[index] = f
         return f
 
-    def read_into(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray) -> None:
-        """Decode frame ``(steps[i], views[i])`` into ``out[i]`` for every i. out: [n, H, W, C]."""
+    def read_into(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
+                  rows: np.ndarray) -> None:
+        """Decode frame ``(steps[i], views[i])`` into ``out[rows[i]]``; out: [n, H, W, C]."""
         spf, k, decode = self.steps_per_file, self.views, self.decoder
-        for i, (t, v) in enumerate(zip(steps.tolist(), views.tolist(), strict=True)):
+        for row, t, v in zip(rows.tolist(), steps.tolist(), views.tolist(), strict=True):
             f = self._file(t // spf)
             j = (t % spf) * k + v
             off, nb = f.offsets[j], f.nbytes[j]
             if off == _EMPTY:
-                out[i] = 0
+                out[row] = 0
                 continue
             if off + nb > f.size:
                 raise DatasetCorruptError(
                     f"image shard file {f.path}: frame of step {t} view {v} points past the end"
                 )
-            decode(f.view[off: off + nb], out[i])
+            decode(f.view[off: off + nb], out[row])
 
     def close(self) -> None:
         for f in self._files.values():

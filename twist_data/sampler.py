@@ -1,0 +1,276 @@
+"""Random training windows: L consecutive steps of one episode, one view per step.
+
+* Starts are uniform over all valid starts of all episodes (a window never crosses an
+  episode boundary) without a table of starts: per-episode counts, a cumulative sum over
+  episodes and a binary search.
+* Several streams (DataLoader workers x distributed ranks) draw from disjoint sets of
+  windows: stream j of P only draws flat start indices congruent to j modulo P. The union of
+  the streams is uniform, and each stream is deterministic under the seed.
+* Images are decoded on demand into a bounded FIFO arena of decoded frames (``cache_bytes``);
+  with uniform access, FIFO evicts as well as LRU and allows vectorised hit lookup. Low-
+  dimensional arrays (about 100 bytes per step) are held in memory; images never are beyond
+  the arena, so a dataset far larger than RAM is read with bounded memory.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import IterableDataset, get_worker_info
+
+from twist_data.errors import SamplerConfigError
+from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.schema import step_arrays
+
+log = logging.getLogger(__name__)
+
+DEFAULT_KEYS = ("image", "state", "action", "reward", "discount", "is_first", "is_last",
+                "is_terminal")
+
+
+@dataclass(frozen=True)
+class SamplerConfig:
+    """How windows are drawn and batched."""
+
+    length: int = 50
+    """L: steps per window (the paper's distillation windows are 50)."""
+    batch_size: int = 16
+    """Windows per batch."""
+    view: int | None = None
+    """Fixed view index for every step, or None for a uniformly random view per step."""
+    seed: int = 0
+    """Seed of the window and view draws."""
+    keys: tuple[str, ...] = DEFAULT_KEYS
+    """Per-step arrays to return (``physics`` and ``dr/<name>`` are available too)."""
+    cache_bytes: int = 1 << 30
+    """Budget of the decoded-frame arena per sampler (per DataLoader worker); 0 disables it."""
+    refresh_every: int = 0
+    """Re-read the dataset for new commits every this many batches; 0: only on refresh()."""
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.length < 1:
+            problems.append(f"window length must be >= 1, got {self.length}")
+        if self.batch_size < 1:
+            problems.append(f"batch size must be >= 1, got {self.batch_size}")
+        if self.view is not None and self.view < 0:
+            problems.append(f"view index must be >= 0, got {self.view}")
+        if self.cache_bytes < 0 or self.refresh_every < 0:
+            problems.append("cache_bytes and refresh_every must be >= 0")
+        if len(set(self.keys)) != len(self.keys) or not self.keys:
+            problems.append(f"keys must be non-empty and unique, got {self.keys}")
+        if problems:
+            raise SamplerConfigError("; ".join(problems))
+
+
+class FrameCache:
+    """Bounded FIFO arena of decoded frames, keyed by global frame id (step * K + view)."""
+
+    def __init__(self, capacity: int, frame_shape: tuple[int, ...]) -> None:
+        self.capacity = capacity
+        self.frame_shape = frame_shape
+        self._arena: np.ndarray | None = None  # allocated on first use (in the worker)
+        self._slot_of = np.zeros(0, np.int64)
+        self._owner = np.full(capacity, -1, np.int64)
+        self._next = 0
+        self.hits = 0
+        self.lookups = 0
+
+    def clear(self, n_frames: int) -> None:
+        self._slot_of = np.full(n_frames, -1, np.int64)
+        self._owner[:] = -1
+        self._next = 0
+
+    def fetch(self, dataset: MatchingDataset, steps: np.ndarray, views: np.ndarray,
+              out: np.ndarray) -> None:
+        """Fill ``out[i]`` with frame (steps[i], views[i]), decoding only what is not cached."""
+        k = dataset.spec.views
+        ids = steps * k + views
+        self.lookups += ids.size
+        if self.capacity == 0:
+            dataset.read_frames(steps, views, out)
+            return
+        if self._arena is None:
+            self._arena = np.empty((self.capacity, *self.frame_shape), np.uint8)
+        if self._slot_of.size < dataset.n_steps * k:
+            self._slot_of = np.concatenate(
+                [self._slot_of, np.full(dataset.n_steps * k - self._slot_of.size, -1, np.int64)])
+        slots = self._slot_of[ids]
+        hit = slots >= 0
+        self.hits += int(hit.sum())
+        if hit.any():
+            out[hit] = self._arena[slots[hit]]
+        if hit.all():
+            return
+        miss_rows = np.flatnonzero(~hit)
+        new_ids, first, inverse = np.unique(ids[miss_rows], return_index=True,
+                                            return_inverse=True)
+        first_rows = miss_rows[first]
+        dataset.read_frames(steps[first_rows], views[first_rows], out, first_rows)
+        out[miss_rows] = out[first_rows[inverse]]  # duplicates within the batch
+        keep = min(new_ids.size, self.capacity)
+        new_ids, first_rows = new_ids[-keep:], first_rows[-keep:]
+        slot = (self._next + np.arange(keep)) % self.capacity
+        evicted = self._owner[slot]
+        self._slot_of[evicted[evicted >= 0]] = -1
+        self._owner[slot] = new_ids
+        self._slot_of[new_ids] = slot
+        self._arena[slot] = out[first_rows]
+        self._next = int((self._next + keep) % self.capacity)
+
+
+class WindowSampler:
+    """Draws batches of windows from a dataset; one of ``n_streams`` disjoint streams.
+
+    A batch is a dict of arrays: ``image`` uint8 [B, L, H, W, 3], ``state`` float32 [B, L, S],
+    ``action`` float32 [B, L, A], ``reward``/``discount`` float32 [B, L], flags bool [B, L],
+    plus ``view`` int64 [B, L] (the view shown at each step), ``start`` int64 [B] (global step
+    of each window's first step) and ``episode`` int64 [B] (global episode index).
+    """
+
+    def __init__(self, dataset: MatchingDataset | str | os.PathLike[str],
+                 config: SamplerConfig | None = None, stream: int = 0, n_streams: int = 1) -> None:
+        self.dataset = dataset if isinstance(dataset, MatchingDataset) else open_dataset(dataset)
+        self.config = config = config or SamplerConfig()
+        if not 0 <= stream < n_streams:
+            raise SamplerConfigError(f"stream {stream} is out of range for {n_streams} streams")
+        self.stream, self.n_streams = stream, n_streams
+        spec = self.dataset.spec
+        if config.view is not None and config.view >= spec.views:
+            raise SamplerConfigError(
+                f"view index {config.view} is out of range: the dataset has {spec.views} views "
+                f"(valid: 0..{spec.views - 1})"
+            )
+        self._per_view = {a.name: a.per_view for a in step_arrays(spec)}
+        unknown = [k for k in config.keys if k not in self._per_view]
+        if unknown:
+            raise SamplerConfigError(
+                f"unknown key {unknown[0]!r}; valid: {', '.join(sorted(self._per_view))}"
+            )
+        frame_bytes = int(np.prod(spec.image_shape))
+        self.cache = FrameCache(config.cache_bytes // frame_bytes, spec.image_shape)
+        seq = np.random.SeedSequence(config.seed, spawn_key=(n_streams, stream))
+        self._rng = np.random.default_rng(seq)
+        self._batches = 0
+        self._reindex()
+
+    def _reindex(self) -> None:
+        lengths = self.dataset.episode_lengths
+        valid = np.maximum(lengths - self.config.length + 1, 0)
+        self._cum_valid = np.cumsum(valid)
+        self.total_windows = int(self._cum_valid[-1]) if valid.size else 0
+        if self.total_windows == 0:
+            longest = int(lengths.max()) if lengths.size else 0
+            raise SamplerConfigError(
+                f"window length {self.config.length} is longer than every episode "
+                f"(the longest has {longest} steps)"
+            )
+        if self.total_windows < self.n_streams:
+            raise SamplerConfigError(
+                f"the dataset has {self.total_windows} windows of length {self.config.length}, "
+                f"fewer than the {self.n_streams} sampler streams"
+            )
+        self._columns = {k: self.dataset.column(k) for k in self.config.keys if k != "image"}
+        self.cache.clear(self.dataset.n_steps * self.dataset.spec.views)
+
+    def refresh(self) -> int:
+        """Pick up newly committed episodes; returns how many arrived."""
+        new = self.dataset.refresh()
+        if new:
+            self._reindex()
+        return new
+
+    def stream_windows(self) -> np.ndarray:
+        """Flat indices (over all valid starts) that this stream can draw, for tests/inspection."""
+        return np.arange(self.stream, self.total_windows, self.n_streams)
+
+    def flat_to_start(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Map flat window indices to (global start step, global episode index)."""
+        episode = np.searchsorted(self._cum_valid, flat, side="right")
+        before = np.where(episode > 0, self._cum_valid[episode - 1], 0)
+        return self.dataset.episode_starts[episode] + (flat - before), episode
+
+    def sample_starts(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Draw ``n`` windows of this stream: (global start step [n], global episode [n])."""
+        p, j = self.n_streams, self.stream
+        count = (self.total_windows - j + p - 1) // p
+        flat = j + p * self._rng.integers(0, count, n)
+        return self.flat_to_start(flat)
+
+    def batch(self) -> dict[str, np.ndarray]:
+        """The next batch of windows."""
+        cfg = self.config
+        if cfg.refresh_every and self._batches and self._batches % cfg.refresh_every == 0:
+            self.refresh()
+        self._batches += 1
+        b, length, k = cfg.batch_size, cfg.length, self.dataset.spec.views
+        starts, episode = self.sample_starts(b)
+        steps = starts[:, None] + np.arange(length)
+        if cfg.view is None:
+            views = self._rng.integers(0, k, (b, length))
+        else:
+            views = np.full((b, length), cfg.view, np.int64)
+        out: dict[str, np.ndarray] = {}
+        for key in cfg.keys:
+            if key == "image":
+                frames = np.empty((b * length, *self.dataset.spec.image_shape), np.uint8)
+                self.cache.fetch(self.dataset, steps.ravel(), views.ravel(), frames)
+                out[key] = frames.reshape(b, length, *frames.shape[1:])
+            elif self._per_view[key]:
+                out[key] = self._columns[key][steps, views]
+            else:
+                out[key] = self._columns[key][steps]
+        out["view"] = views
+        out["start"] = starts
+        out["episode"] = episode
+        return out
+
+    def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
+        while True:
+            yield self.batch()
+
+
+def _rank_and_world(rank: int | None, world_size: int | None) -> tuple[int, int]:
+    if rank is not None and world_size is not None:
+        return rank, world_size
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
+
+
+class WindowDataset(IterableDataset):
+    """PyTorch view of :class:`WindowSampler`: yields batches as tensors, forever.
+
+    Use with ``DataLoader(ds, batch_size=None, num_workers=n)``. Each (rank, worker) pair
+    becomes one disjoint stream; rank and world size come from ``torch.distributed`` when it
+    is initialised, or from the arguments. The dataset is opened inside each worker.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], config: SamplerConfig | None = None,
+                 rank: int | None = None, world_size: int | None = None) -> None:
+        super().__init__()
+        self.path = Path(path)
+        self.config = config or SamplerConfig()
+        self.rank, self.world_size = rank, world_size
+        open_dataset(self.path)  # fail early, in the caller's process, on a bad path
+
+    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+        info = get_worker_info()
+        worker, workers = (info.id, info.num_workers) if info is not None else (0, 1)
+        rank, world = _rank_and_world(self.rank, self.world_size)
+        sampler = WindowSampler(self.path, self.config, stream=rank * workers + worker,
+                                n_streams=world * workers)
+        for batch in sampler:
+            yield {k: torch.from_numpy(v) for k, v in batch.items()}
+
+
+def to_torch(batch: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Convert a NumPy batch to tensors without copying."""
+    return {k: torch.from_numpy(v) for k, v in batch.items()}

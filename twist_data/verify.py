@@ -1,0 +1,190 @@
+"""Full integrity check of a dataset: collects every problem, naming shard, episode and array.
+
+Data is read through zarr's own API (not the sampler's direct reader), so a check passes only
+if a plain zarr user can read every committed chunk; zarr also verifies each shard index CRC.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from twist_data.errors import TwistError
+from twist_data.reader import ShardReader, find_shards
+from twist_data.schema import EPISODE_COLUMNS, step_arrays
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One integrity problem."""
+
+    shard: str
+    message: str
+    array: str | None = None
+    episode: int | None = None
+
+    def __str__(self) -> str:
+        where = [f"shard {self.shard}"]
+        if self.episode is not None:
+            where.append(f"episode {self.episode}")
+        if self.array is not None:
+            where.append(self.array)
+        return ", ".join(where) + ": " + self.message
+
+
+@dataclass
+class VerifyReport:
+    """What :func:`verify_dataset` found."""
+
+    path: Path
+    problems: list[Problem] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    shards: int = 0
+    episodes: int = 0
+    steps: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+def _episodes_in(ends: np.ndarray, start: int, stop: int) -> list[int]:
+    """Indices of episodes overlapping steps [start, stop)."""
+    first = int(np.searchsorted(ends, start, side="right"))
+    last = int(np.searchsorted(ends, stop - 1, side="right"))
+    return list(range(first, min(last, ends.size - 1) + 1)) if ends.size else []
+
+
+def _verify_shard(shard: ShardReader, report: VerifyReport,
+                  tick: Callable[[int], None]) -> None:
+    name, n, ends = shard.name, shard.n_steps, shard.episode_ends
+    starts = shard.episode_starts
+    spf = shard.layout.steps_per_file
+
+    def problem(message: str, array: str | None = None, episode: int | None = None) -> None:
+        report.problems.append(Problem(name, message, array, episode))
+
+    expected = [(a.path, a.dtype, a.trailing, n) for a in step_arrays(shard.spec)]
+    expected += [(f"meta/{c}", dt, (), shard.n_episodes) for c, (dt, _) in EPISODE_COLUMNS.items()]
+    expected += [(f"meta/dr/{p.name}", p.dtype, p.shape, shard.n_episodes)
+                 for p in shard.spec.episode_dr_params]
+    loaded: dict[str, np.ndarray] = {}
+    for key, dtype, trailing, committed in expected:
+        try:
+            arr = shard.array(key)
+        except TwistError as exc:
+            problem(str(exc).split(": ", 1)[-1], key)
+            continue
+        if arr.dtype != np.dtype(dtype) or tuple(arr.shape[1:]) != trailing:
+            problem(f"has dtype {arr.dtype} and shape {arr.shape}, expected {dtype} "
+                    f"[*, {', '.join(map(str, trailing))}]", key)
+            continue
+        if arr.shape[0] < committed:
+            problem(f"holds {arr.shape[0]} rows but {committed} are committed (truncated)", key)
+            continue
+        if key.startswith("meta/"):
+            continue
+        keep = key != "data/image"
+        parts = []
+        for a in range(0, n, spf):
+            b = min(a + spf, n)
+            try:
+                block = arr[a:b]
+            except Exception as exc:  # zarr/codec errors have many types
+                eps = _episodes_in(ends, a, b)
+                problem(f"steps {a}-{b - 1} (episodes {eps[0]}-{eps[-1]}) are unreadable: "
+                        f"{type(exc).__name__}: {exc}", key)
+                keep = False
+                break
+            if block.dtype.kind == "f":
+                bad = ~np.isfinite(block.reshape(block.shape[0], -1)).all(axis=1)
+                if bad.any():
+                    step = a + int(np.flatnonzero(bad)[0])
+                    ep = int(np.searchsorted(ends, step, side="right"))
+                    problem(f"contains NaN or inf (first at step {step - int(starts[ep])} of the "
+                            "episode)", key, ep)
+            if keep:
+                parts.append(block)
+            if key == "data/image":
+                tick(b - a)
+        if keep:
+            loaded[key] = np.concatenate(parts) if parts else arr[:0]
+
+    flags = [loaded.get(f"data/{f}") for f in ("is_first", "is_last", "is_terminal", "discount",
+                                                 "reward")]
+    if all(f is not None for f in flags):
+        is_first, is_last, is_terminal, discount, reward = flags
+        returns = shard.episode_column("episode_return")
+        for e, (a, b) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True)):
+            if not is_first[a] or is_first[a + 1:b].any():
+                problem("is_first is not true exactly at the episode's first step",
+                        "data/is_first", e)
+            if not is_last[b - 1] or is_last[a:b - 1].any():
+                problem("is_last is not true exactly at the episode's last step", "data/is_last", e)
+            if (is_terminal[a:b] & ~is_last[a:b]).any():
+                problem("is_terminal is true at a step that is not last", "data/is_terminal", e)
+            if (discount[a:b][is_terminal[a:b]] != 0).any():
+                problem("discount is not 0 at a terminal step", "data/discount", e)
+            total = float(np.sum(reward[a:b], dtype=np.float64))
+            if not np.isclose(total, returns[e], rtol=1e-6, atol=1e-6):
+                problem(f"stored return {returns[e]:.6g} differs from the sum of rewards "
+                        f"{total:.6g}", "meta/episode_return", e)
+    leftovers = list(shard.path.rglob("*.partial"))
+    if leftovers:
+        report.notes.append(
+            f"shard {name}: {len(leftovers)} temporary file(s) left by an interrupted write "
+            "(harmless; removed when a writer resumes the shard)"
+        )
+    beyond = shard.array("data/reward").shape[0] - n if "data/reward" in loaded else 0
+    if beyond > 0:
+        report.notes.append(
+            f"shard {name}: {beyond} uncommitted step(s) beyond the commit record "
+            "(an interrupted episode; invisible to readers, discarded on resume)"
+        )
+
+
+def verify_dataset(path: str | os.PathLike[str],
+                   on_progress: Callable[[int, int], None] | None = None) -> VerifyReport:
+    """Check every shard of the dataset at ``path``; never modifies anything.
+
+    ``on_progress(done, total)`` reports image steps checked. Raises
+    :class:`~twist_data.errors.NotADatasetError` only when ``path`` holds no shard at all;
+    every other problem lands in the report.
+    """
+    path = Path(path)
+    report = VerifyReport(path)
+    shards: list[ShardReader] = []
+    for p in find_shards(path):
+        try:
+            shards.append(ShardReader(p))
+        except TwistError as exc:
+            report.problems.append(Problem(p.name.removesuffix(".zarr"), str(exc)))
+    report.shards = len(shards)
+    if shards:
+        ref = shards[0]
+        for s in shards[1:]:
+            if s.spec.schema_key() != ref.spec.schema_key():
+                report.problems.append(Problem(
+                    s.name, f"schema differs from shard {ref.name}; they cannot form one dataset"))
+    total = sum(s.n_steps for s in shards)
+    done = 0
+
+    def tick(steps: int) -> None:
+        nonlocal done
+        done += steps
+        if on_progress is not None:
+            on_progress(done, total)
+
+    for shard in shards:
+        _verify_shard(shard, report, tick)
+        report.episodes += shard.n_episodes
+        report.steps += shard.n_steps
+    log.info("verified %s: %d problem(s)", path, len(report.problems))
+    return report
