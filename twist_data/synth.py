@@ -55,7 +55,7 @@ class SynthConfig:
             problems.append(f"image_size must be >= 16, got {self.image_size}")
         if self.steps < 2:
             problems.append(f"steps must be >= 2, got {self.steps}")
-        if not 0 <= self.length_jitter < self.steps - 1:
+        elif not 0 <= self.length_jitter < self.steps - 1:
             problems.append(f"length_jitter must be in [0, steps - 1), got {self.length_jitter}")
         if problems:
             raise ValueError("; ".join(problems))

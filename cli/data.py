@@ -1,0 +1,176 @@
+"""``twist-data``: inspect, verify, export and synthesise matching datasets."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated
+
+import pandas as pd
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from twist_data.errors import TwistError
+from twist_data.export import export_hdf5, export_video
+from twist_data.reader import open_dataset
+from twist_data.summary import dataset_info
+from twist_data.synth import SynthConfig, write_synthetic_dataset
+from twist_data.verify import verify_dataset
+
+app = typer.Typer(help="Inspect, verify, export and synthesise TWIST matching datasets.",
+                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+out = Console()
+err = Console(stderr=True)
+
+DatasetArg = Annotated[Path, typer.Argument(help="Dataset folder (or one shard folder).")]
+
+
+@contextmanager
+def progress_bar(description: str) -> Iterator[Callable[[int, int], None]]:
+    """A Rich progress bar on stderr, exposed as an ``on_progress(done, total)`` callback."""
+    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TimeRemainingColumn(), console=err, transient=True) as bar:
+        task = bar.add_task(description, total=None)
+
+        def update(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        yield update
+
+
+def _human(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return str(n)
+
+
+@app.command()
+def info(dataset: DatasetArg,
+         as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False) -> None:
+    """Shards, episodes, steps, views, shapes, dimensions, bytes and compression."""
+    summary = dataset_info(dataset)
+    if as_json:
+        out.print_json(json.dumps(summary))
+        return
+    table = Table(title=f"twist dataset {summary['path']}", show_header=False)
+    rows = [
+        ("format version", summary["format_version"]), ("task", summary["task"]),
+        ("shards", len(summary["shards"])), ("episodes", summary["episodes"]),
+        ("steps", summary["steps"]), ("views K", summary["views"]),
+        ("image shape", "x".join(map(str, summary["image_shape"]))),
+        ("state / action / physics dims",
+         f"{summary['state_dim']} / {summary['action_dim']} / {summary['physics_dim']}"),
+        ("DR parameters", ", ".join(summary["dr_params"]) or "-"),
+        ("bytes on disk", _human(summary["bytes_on_disk"])),
+        ("uncompressed", _human(summary["bytes_uncompressed"])),
+        ("compression ratio", f"{summary['compression_ratio']:.2f}"
+         if summary["compression_ratio"] else "-"),
+    ]
+    if summary["episode_return"]:
+        r = summary["episode_return"]
+        rows.append(("episode return min/mean/max", f"{r['min']:.1f} / {r['mean']:.1f} / "
+                                                    f"{r['max']:.1f}"))
+    for key, value in rows:
+        table.add_row(key, str(value))
+    out.print(table)
+
+
+@app.command()
+def episodes(dataset: DatasetArg,
+             csv: Annotated[Path | None, typer.Option(help="Write the table to this CSV file.")]
+             = None) -> None:
+    """Per-episode table: shard, length, return, seed and provenance."""
+    table = open_dataset(dataset).episodes()
+    if csv is not None:
+        table.to_csv(csv)
+        err.print(f"wrote {len(table)} episodes to {csv}")
+        return
+    shown = table.assign(committed=table["committed"].dt.strftime("%Y-%m-%d %H:%M:%S"))
+    with pd.option_context("display.max_rows", None, "display.width", 200,
+                           "display.float_format", "{:.3f}".format):
+        out.print(shown.to_string(), markup=False, highlight=False, soft_wrap=True)
+
+
+@app.command()
+def verify(dataset: DatasetArg) -> None:
+    """Full integrity check; exit 0 when clean, 1 with one line per problem otherwise."""
+    with progress_bar("verifying") as update:
+        report = verify_dataset(dataset, on_progress=update)
+    for note in report.notes:
+        err.print(f"note: {note}")
+    if report.ok:
+        out.print(f"OK: {report.shards} shard(s), {report.episodes} episodes, "
+                  f"{report.steps} steps verified")
+        return
+    for problem in report.problems:
+        err.print(f"problem: {problem}", markup=False, highlight=False, soft_wrap=True)
+    err.print(f"FAILED: {len(report.problems)} problem(s) in {dataset}")
+    raise typer.Exit(1)
+
+
+@app.command("export-video")
+def export_video_cmd(
+    dataset: DatasetArg,
+    out_path: Annotated[Path, typer.Argument(metavar="OUT", help="Output .mp4 or .gif file.")],
+    episode: Annotated[int, typer.Option(help="Global episode index.")] = 0,
+    fps: Annotated[int, typer.Option(help="Frames per second.")] = 25,
+    scale: Annotated[int, typer.Option(help="Pixel upscaling factor.")] = 4,
+) -> None:
+    """Write one episode's K views side by side as a video."""
+    path = export_video(dataset, episode, out_path, fps=fps, scale=scale)
+    out.print(f"wrote {path}")
+
+
+@app.command("export-hdf5")
+def export_hdf5_cmd(
+    dataset: DatasetArg,
+    out_path: Annotated[Path, typer.Argument(metavar="OUT", help="Output .h5 file.")],
+) -> None:
+    """Write every committed episode into one HDF5 file (layout in datasets.md)."""
+    with progress_bar("exporting") as update:
+        path = export_hdf5(dataset, out_path, on_progress=update)
+    out.print(f"wrote {path}")
+
+
+@app.command()
+def synth(
+    out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="Dataset folder to create.")],
+    episodes: Annotated[int, typer.Option(help="Number of episodes.")] = 4,
+    steps: Annotated[int, typer.Option(help="Steps per episode.")] = 60,
+    views: Annotated[int, typer.Option(help="K renders per step.")] = 2,
+    image_size: Annotated[int, typer.Option(help="Image side in pixels.")] = 64,
+    shards: Annotated[int, typer.Option(help="Number of shards.")] = 1,
+    length_jitter: Annotated[int, typer.Option(help="Shorten episodes by up to this.")] = 0,
+    seed: Annotated[int, typer.Option(help="Seed.")] = 0,
+) -> None:
+    """Write a synthetic dataset (the generator the tests use as fixtures)."""
+    try:
+        config = SynthConfig(episodes=episodes, steps=steps, views=views, image_size=image_size,
+                             shards=shards, length_jitter=length_jitter, seed=seed)
+    except ValueError as exc:
+        raise TwistError(f"invalid synth options: {exc}") from None
+    with progress_bar("writing") as update:
+        write_synthetic_dataset(out_dir, config, on_episode=update)
+    out.print(f"wrote {episodes} episodes x {steps} steps x {views} views to {out_dir}")
+
+
+def main() -> None:
+    """Entry point: known errors become one line on stderr and exit code 2."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        app()
+    except TwistError as exc:
+        err.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,128 @@
+"""The format: time alignment, round trips, the spec in datasets.md, re-rendering from DR data."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from tests.conftest import SMALL
+from twist_data.reader import open_dataset
+from twist_data.sampler import SamplerConfig, WindowSampler
+from twist_data.schema import (
+    EPISODE_COLUMNS,
+    FORMAT_VERSION,
+    DatasetSpec,
+    Episode,
+    EpisodeInfo,
+    step_arrays,
+)
+from twist_data.synth import render_synthetic, synth_spec, synthetic_episode
+from twist_data.writer import ShardWriter
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def hand_built_episode(spec: DatasetSpec) -> tuple[Episode, list[float], list[float]]:
+    """Integrator s' = s + a, reward = -|s'|, from s_0 = 1 with actions -0.5, -0.25, +1."""
+    states, applied, rewards = [1.0], [-0.5, -0.25, 1.0], []
+    for a in applied:
+        states.append(states[-1] + a)
+        rewards.append(-abs(states[-1]))
+    t = len(states)
+    k, h, w = spec.views, spec.image_height, spec.image_width
+    image = np.zeros((t, k, h, w, 3), np.uint8)
+    image[:, :, 0, 0, 0] = np.arange(t)[:, None]  # frame t is marked with t
+    ep = Episode(
+        image=image,
+        state=np.array(states, np.float32)[:, None].repeat(spec.state_dim, 1),
+        physics=np.array(states, np.float64)[:, None].repeat(spec.physics_dim, 1),
+        action=np.array([0.0, *applied], np.float32)[:, None],
+        reward=np.array([0.0, *rewards], np.float32),
+        discount=np.ones(t, np.float32),
+        is_first=np.arange(t) == 0, is_last=np.arange(t) == t - 1, is_terminal=np.zeros(t, bool),
+        dr={p.name: np.zeros((t, k, *p.shape), p.dtype) for p in spec.dr_params},
+    )
+    return ep, states, rewards
+
+
+def test_time_alignment_matches_a_hand_built_episode(tmp_path: Path) -> None:
+    spec = synth_spec(views=2, image_size=16)
+    ep, states, rewards = hand_built_episode(spec)
+    with ShardWriter.create(tmp_path, "hand", spec) as w:
+        w.append(ep, EpisodeInfo(seed=0, policy="scripted", dr={"pole_mass_scale": 1.0}))
+    sampler = WindowSampler(tmp_path, SamplerConfig(length=4, batch_size=1, view=1))
+    b = sampler.batch()
+    s, a, r = b["state"][0, :, 0], b["action"][0, :, 0], b["reward"][0]
+    # index t holds o_t/s_t, the action that led to it (a_{t-1}) and the reward for it.
+    np.testing.assert_array_equal(s, states)
+    np.testing.assert_array_equal(s[1:], s[:-1] + a[1:])
+    np.testing.assert_array_equal(r[1:], rewards)
+    assert a[0] == 0 and r[0] == 0
+    np.testing.assert_array_equal(b["image"][0, :, 0, 0, 0], np.arange(4))
+    assert b["is_first"][0].tolist() == [True, False, False, False]
+    assert b["is_last"][0].tolist() == [False, False, False, True]
+
+
+def test_every_array_round_trips(small_dataset: Path) -> None:
+    ds = open_dataset(small_dataset)
+    assert ds.n_episodes == SMALL.episodes
+    table = ds.episodes()
+    for i in range(SMALL.episodes):
+        expected, info = synthetic_episode(SMALL, i)
+        got = ds.episode(i).arrays()
+        assert set(got) == set(expected.arrays())
+        for key, value in expected.arrays().items():
+            assert got[key].dtype == value.dtype, key
+            np.testing.assert_array_equal(got[key], value, err_msg=key)
+        row = table.loc[i]
+        assert row["length"] == len(expected)
+        assert row["seed"] == info.seed and row["policy"] == "synthetic"
+        assert row["dr_pole_mass_scale"] == pytest.approx(float(info.dr["pole_mass_scale"]))
+        assert row["return"] == pytest.approx(float(expected.reward.astype(np.float64).sum()))
+
+
+def test_plain_zarr_reads_what_datasets_md_describes(small_dataset: Path) -> None:
+    """A reader with only zarr and the spec: commit record, episode_ends, data arrays."""
+    shard = sorted(small_dataset.glob("*.zarr"))[1]
+    group = zarr.open_group(shard, mode="r")
+    block = group.attrs["twist"]
+    assert block["format_version"] == FORMAT_VERSION
+    n_ep, n_steps = block["commit"]["n_episodes"], block["commit"]["n_steps"]
+    ends = group["meta/episode_ends"][:n_ep]
+    assert ends[-1] == n_steps
+    start = int(ends[0])  # second episode of this shard
+    expected, _ = synthetic_episode(SMALL, SMALL.episodes // 2 + 1)
+    np.testing.assert_array_equal(group["data/image"][start:ends[1]], expected.image)
+    np.testing.assert_array_equal(group["data/action"][start:ends[1]], expected.action)
+
+
+def test_datasets_md_documents_every_array() -> None:
+    text = (ROOT / "datasets.md").read_text()
+    spec = synth_spec()
+    core = [a for a in step_arrays(spec) if not a.name.startswith("dr/")]
+    for a in core:
+        assert re.search(rf"`data/{a.name}`", text), a.name
+    for column in EPISODE_COLUMNS:
+        assert f"`meta/{column}`" in text, column
+    assert f"format_version` = {FORMAT_VERSION}" in text or f"`format_version`: {FORMAT_VERSION}" \
+        in text
+
+
+def test_stored_dr_parameters_reproduce_each_frame(small_dataset: Path) -> None:
+    ds = open_dataset(small_dataset)
+    ep = ds.episode(2)
+    for t in (0, 7, len(ep) - 1):
+        for v in range(ds.spec.views):
+            frame = render_synthetic(ep.physics[t], ep.dr["background_seed"][t, v],
+                                     ep.dr["agent_rgb"][t, v], ep.dr["brightness"][t, v],
+                                     ds.spec.image_height)
+            np.testing.assert_array_equal(frame, ep.image[t, v])
+
+
+def test_spec_survives_json() -> None:
+    spec = synth_spec(views=3, image_size=32)
+    assert DatasetSpec.from_json(spec.to_json()) == spec
