@@ -204,8 +204,12 @@ class WindowSampler:
         flat = j + p * self._rng.integers(0, count, n)
         return self.flat_to_start(flat)
 
-    def batch(self) -> dict[str, np.ndarray]:
-        """The next batch of windows."""
+    def batch(self, image_out: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The next batch of windows; images are decoded into ``image_out`` when given.
+
+        ``image_out`` ([B, L, H, W, 3] uint8) lets a DataLoader worker decode straight into
+        shared memory instead of having the batch copied there afterwards.
+        """
         cfg = self.config
         if cfg.refresh_every and self._batches and self._batches % cfg.refresh_every == 0:
             self.refresh()
@@ -220,9 +224,16 @@ class WindowSampler:
         out: dict[str, np.ndarray] = {}
         for key in cfg.keys:
             if key == "image":
-                frames = np.empty((b * length, *self.dataset.spec.image_shape), np.uint8)
+                shape = (b, length, *self.dataset.spec.image_shape)
+                if image_out is None:
+                    image_out = np.empty(shape, np.uint8)
+                elif image_out.shape != shape or image_out.dtype != np.uint8:
+                    raise SamplerConfigError(
+                        f"image_out must be uint8 {shape}, got {image_out.dtype} {image_out.shape}"
+                    )
+                frames = image_out.reshape(b * length, *shape[2:])
                 self.cache.fetch(self.dataset, steps.ravel(), views.ravel(), frames)
-                out[key] = frames.reshape(b, length, *frames.shape[1:])
+                out[key] = image_out
             elif self._per_view[key]:
                 out[key] = self._columns[key][steps, views]
             else:
@@ -267,8 +278,21 @@ class WindowDataset(IterableDataset):
         rank, world = _rank_and_world(self.rank, self.world_size)
         sampler = WindowSampler(self.path, self.config, stream=rank * workers + worker,
                                 n_streams=world * workers)
-        for batch in sampler:
-            yield {k: torch.from_numpy(v) for k, v in batch.items()}
+        spec = sampler.dataset.spec
+        shape = (self.config.batch_size, self.config.length, *spec.image_shape)
+        while True:
+            image = None
+            if "image" in self.config.keys:
+                image = torch.empty(shape, dtype=torch.uint8)
+                if info is not None:
+                    # Decode straight into shared memory: the DataLoader then passes a handle
+                    # to the main process instead of copying ~10 MB per batch.
+                    image.share_memory_()
+            batch = sampler.batch(None if image is None else image.numpy())
+            out = {k: torch.from_numpy(v) for k, v in batch.items() if k != "image"}
+            if image is not None:
+                out["image"] = image
+            yield out
 
 
 def to_torch(batch: dict[str, np.ndarray]) -> dict[str, Any]:
