@@ -43,7 +43,7 @@ def test_windows_stay_inside_one_episode_and_match_its_data(small_dataset: Path)
         for w in range(8):
             e = int(b["episode"][w])
             offset = int(b["start"][w] - ds.episode_starts[e])
-            assert 0 <= offset and offset + L <= len(episodes[e])
+            assert offset >= 0 and offset + L <= len(episodes[e])
             ref = episodes[e]
             steps = offset + np.arange(L)
             np.testing.assert_array_equal(b["image"][w], ref.image[steps, b["view"][w]])

@@ -92,9 +92,9 @@ def test_uncommitted_episode_is_invisible_and_discarded_on_resume(tmp_path: Path
 
 
 def test_one_writer_per_shard_and_no_overwrite(tmp_path: Path) -> None:
-    with ShardWriter.create(tmp_path, "s", SPEC):
-        with pytest.raises(ShardLockedError, match="already being written"):
-            ShardWriter.resume(tmp_path / "s.zarr")
+    with ShardWriter.create(tmp_path, "s", SPEC), pytest.raises(ShardLockedError,
+                                                                 match="already being written"):
+        ShardWriter.resume(tmp_path / "s.zarr")
     with pytest.raises(NotADatasetError, match="already exists"):
         ShardWriter.create(tmp_path, "s", SPEC)
     with pytest.raises(NotADatasetError, match="must not contain"):

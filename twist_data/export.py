@@ -12,7 +12,7 @@ import cv2
 import h5py
 import numpy as np
 
-from twist_data.errors import SamplerConfigError, TwistError
+from twist_data.errors import TwistError
 from twist_data.reader import open_dataset
 from twist_data.schema import EPISODE_COLUMNS, FORMAT_VERSION, step_arrays
 
@@ -119,4 +119,4 @@ def export_hdf5(dataset_path: str | os.PathLike[str], out: str | os.PathLike[str
     return out
 
 
-__all__ = ["ExportError", "SamplerConfigError", "episode_strip", "export_hdf5", "export_video"]
+__all__ = ["ExportError", "episode_strip", "export_hdf5", "export_video"]

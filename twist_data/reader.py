@@ -25,7 +25,6 @@ from twist_data.errors import (
     SchemaMismatchError,
 )
 from twist_data.schema import (
-    ATTRS_KEY,
     EPISODE_COLUMNS,
     POLICY_CODES,
     DatasetSpec,
@@ -375,10 +374,5 @@ def open_dataset(path: str | os.PathLike[str]) -> MatchingDataset:
     return MatchingDataset(path)
 
 
-def read_attrs(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The ``twist`` attribute block of one shard, checked for format and version."""
-    group = _open_group(Path(path))
-    return dict(check_format(group.attrs, str(path)))
 
-
-__all__ = ["ATTRS_KEY", "MatchingDataset", "ShardReader", "open_dataset", "read_attrs"]
+__all__ = ["MatchingDataset", "ShardReader", "open_dataset"]

@@ -19,7 +19,6 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -104,10 +103,15 @@ class FrameCache:
                 [self._slot_of, np.full(dataset.n_steps * k - self._slot_of.size, -1, np.int64)])
         slots = self._slot_of[ids]
         hit = slots >= 0
-        self.hits += int(hit.sum())
-        if hit.any():
-            out[hit] = self._arena[slots[hit]]
-        if hit.all():
+        n_hit = int(hit.sum())
+        self.hits += n_hit
+        if n_hit:
+            # One gather straight into out; rows that missed get slot 0 and are overwritten
+            # by the decoder below (cheaper than a masked gather plus scatter).
+            # mode="clip": indices are valid by construction, and numpy buffers `out` for
+            # the default mode="raise", which would copy every frame twice.
+            np.take(self._arena, np.where(hit, slots, 0), axis=0, out=out, mode="clip")
+        if n_hit == ids.size:
             return
         miss_rows = np.flatnonzero(~hit)
         new_ids, first, inverse = np.unique(ids[miss_rows], return_index=True,
@@ -186,10 +190,6 @@ class WindowSampler:
         if new:
             self._reindex()
         return new
-
-    def stream_windows(self) -> np.ndarray:
-        """Flat indices (over all valid starts) that this stream can draw, for tests/inspection."""
-        return np.arange(self.stream, self.total_windows, self.n_streams)
 
     def flat_to_start(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Map flat window indices to (global start step, global episode index)."""
@@ -294,7 +294,3 @@ class WindowDataset(IterableDataset):
                 out["image"] = image
             yield out
 
-
-def to_torch(batch: dict[str, np.ndarray]) -> dict[str, Any]:
-    """Convert a NumPy batch to tensors without copying."""
-    return {k: torch.from_numpy(v) for k, v in batch.items()}

@@ -92,12 +92,12 @@ def render_synthetic(physics: np.ndarray, background_seed: int, agent_rgb: np.nd
     image[floor:] = (90, 90, 90)
     x, theta = float(physics[0]), float(physics[1])
     colour = tuple(int(c) for c in np.round(np.asarray(agent_rgb, np.float64) * 255))
-    cx = int(round(size / 2 + x * size / 6))
+    cx = round(size / 2 + x * size / 6)
     cy = floor - size // 16
     half_w, half_h = size // 10, size // 20
     cv2.rectangle(image, (cx - half_w, cy - half_h), (cx + half_w, cy + half_h), colour, -1)
     pole = size * 0.35
-    tip = (int(round(cx + pole * np.sin(theta))), int(round(cy - pole * np.cos(theta))))
+    tip = (round(cx + pole * np.sin(theta)), round(cy - pole * np.cos(theta)))
     cv2.line(image, (cx, cy), tip, colour, max(1, size // 32))
     return cv2.convertScaleAbs(image, alpha=float(brightness))
 
