@@ -12,7 +12,6 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -67,7 +66,7 @@ class ShardReader:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self.name = self.path.name.removesuffix(".zarr")
-        self._frames: Any = None
+        self._frames: FrameReader | _ZarrFrameReader | None = None
         self._load_metadata()
 
     def _load_metadata(self) -> None:
@@ -155,7 +154,7 @@ class ShardReader:
         return arr[start:stop]
 
     @property
-    def frames(self) -> Any:
+    def frames(self) -> FrameReader | _ZarrFrameReader:
         """Frame reader with ``read_into(steps, views, out, rows)``; direct when possible."""
         if self._frames is None:
             arr = self.array("data/image")
@@ -372,7 +371,6 @@ class MatchingDataset:
 def open_dataset(path: str | os.PathLike[str]) -> MatchingDataset:
     """Open a dataset folder (or a single shard folder) for reading."""
     return MatchingDataset(path)
-
 
 
 __all__ = ["MatchingDataset", "ShardReader", "open_dataset"]
