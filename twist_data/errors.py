@@ -33,3 +33,23 @@ class SamplerConfigError(TwistError):
 
 class ShardLockedError(TwistError):
     """Another process is already writing this shard."""
+
+
+class ConfigError(TwistError, ValueError):
+    """A configuration value is out of range or inconsistent with another one."""
+
+
+class UnknownTaskError(TwistError):
+    """A task name that is not one of the supported simulated tasks."""
+
+
+class PhysicsStateError(TwistError):
+    """A physics state vector that does not fit the task (wrong length, not finite)."""
+
+
+class BackgroundError(TwistError):
+    """Background images cannot be loaded (missing, empty or unreadable directory)."""
+
+
+class RenderUnavailableError(TwistError):
+    """No OpenGL context could be created for offscreen rendering."""

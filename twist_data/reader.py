@@ -28,6 +28,7 @@ from twist_data.schema import (
     POLICY_CODES,
     DatasetSpec,
     Episode,
+    EpisodeInfo,
     check_format,
     step_arrays,
 )
@@ -322,14 +323,28 @@ class MatchingDataset:
 
     def episode(self, index: int) -> Episode:
         """Global episode ``index`` (episodes numbered over shards in shard-name order)."""
+        shard, local = self.episode_location(index)
+        return self.shards[shard].episode(local)
+
+    def episode_info(self, index: int) -> EpisodeInfo:
+        """Provenance of global episode ``index`` as the writer received it."""
+        shard, local = self.episode_location(index)
+        table = self.shards[shard]._table
+        codes = {v: k for k, v in POLICY_CODES.items()}
+        return EpisodeInfo(
+            seed=int(table["episode_seed"][local]),
+            policy=codes[int(table["episode_policy"][local])],
+            teacher_step=int(table["episode_teacher_step"][local]),
+            env_step=int(table["episode_env_step"][local]),
+            dr={p.name: table[f"dr/{p.name}"][local] for p in self.spec.episode_dr_params},
+        )
+
+    def episode_location(self, index: int) -> tuple[int, int]:
+        """(shard number, episode within that shard) of global episode ``index``."""
         if not 0 <= index < self.n_episodes:
             raise SamplerConfigError(
                 f"dataset has {self.n_episodes} episodes; index {index} is out of range"
             )
-        shard, local = self.episode_location(index)
-        return self.shards[shard].episode(local)
-
-    def episode_location(self, index: int) -> tuple[int, int]:
         counts = np.cumsum([s.n_episodes for s in self.shards])
         shard = int(np.searchsorted(counts, index, side="right"))
         return shard, index - (int(counts[shard - 1]) if shard else 0)

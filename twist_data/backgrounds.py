@@ -1,0 +1,232 @@
+"""Background textures for domain randomisation: two disjoint procedural banks and user images.
+
+The paper uses Distracting-Control video backgrounds (train vs validation videos). The machine
+this toolkit targets has no internet, so the default banks are procedural and regenerated
+bit-exactly from a seed: ``train`` draws from three texture families (fractal clouds, wave
+stripes, rotated checkers), ``heldout`` from three *other* families (Voronoi cells, radial
+rings, Mondrian rectangles). A held-out texture therefore never occurs in training, and the
+shift is one of texture statistics, not only of seeds. ``--backgrounds DIR`` swaps in any
+folder of photos, or video files whose frames are used.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from twist_data.errors import BackgroundError, ConfigError
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp", ".tif", ".tiff")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".gif")
+
+Generator = Callable[[np.random.Generator, int], np.ndarray]
+
+
+def _palette(rng: np.random.Generator, n: int) -> np.ndarray:
+    return rng.uniform(0, 255, (n, 3)).astype(np.float32)
+
+
+def _grid(size: int) -> tuple[np.ndarray, np.ndarray]:
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
+    return yy, xx
+
+
+def _to_image(value: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """Map values in [0, 1] through a piecewise-linear palette of colours -> uint8 RGB."""
+    stops = np.linspace(0.0, 1.0, len(colours))
+    channels = [np.interp(value, stops, colours[:, c]) for c in range(3)]
+    return np.clip(np.stack(channels, -1), 0, 255).astype(np.uint8)
+
+
+def clouds(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Fractal value noise: octaves of bicubically upsampled random grids."""
+    value = np.zeros((size, size), np.float32)
+    octaves = int(rng.integers(3, 6))
+    for octave in range(octaves):
+        cells = 2 ** (octave + 1)
+        low = rng.random((cells, cells), dtype=np.float32)
+        value += cv2.resize(low, (size, size), interpolation=cv2.INTER_CUBIC) / 2**octave
+    value = (value - value.min()) / max(float(np.ptp(value)), 1e-6)
+    return _to_image(value, _palette(rng, int(rng.integers(2, 5))))
+
+
+def stripes(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Sums of one or two plane waves at random angles, wavelengths and phases."""
+    yy, xx = _grid(size)
+    value = np.zeros((size, size), np.float32)
+    for _ in range(int(rng.integers(1, 3))):
+        angle, freq = rng.uniform(0, np.pi), rng.uniform(2, 12)
+        value += np.sin(2 * np.pi * freq * (np.cos(angle) * xx + np.sin(angle) * yy)
+                        + rng.uniform(0, 2 * np.pi))
+    value = (value - value.min()) / max(float(np.ptp(value)), 1e-6)
+    return _to_image(value, _palette(rng, int(rng.integers(2, 4))))
+
+
+def checker(rng: np.random.Generator, size: int) -> np.ndarray:
+    """A rotated two-colour checkerboard with a random period."""
+    yy, xx = _grid(size)
+    angle, cells = rng.uniform(0, np.pi / 2), rng.uniform(3, 12)
+    u = np.cos(angle) * xx - np.sin(angle) * yy
+    v = np.sin(angle) * xx + np.cos(angle) * yy
+    value = ((np.floor(u * cells) + np.floor(v * cells)) % 2).astype(np.float32)
+    colours = _palette(rng, 2)
+    return np.clip(colours[0] + value[..., None] * (colours[1] - colours[0]), 0, 255).astype(np.uint8)
+
+
+def cells(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Voronoi cells of random seed points, each a flat random colour, with dark borders."""
+    yy, xx = _grid(size)
+    points = rng.random((int(rng.integers(6, 30)), 2), dtype=np.float32)
+    dist = (yy[..., None] - points[:, 0]) ** 2 + (xx[..., None] - points[:, 1]) ** 2
+    order = np.sort(dist, axis=-1)
+    nearest = np.argmin(dist, axis=-1)
+    image = _palette(rng, len(points))[nearest]
+    border = (np.sqrt(order[..., 1]) - np.sqrt(order[..., 0])) < 0.01
+    image[border] *= 0.3
+    return image.astype(np.uint8)
+
+
+def rings(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Concentric waves around a random centre, optionally twisted into a spiral."""
+    yy, xx = _grid(size)
+    cy, cx = rng.uniform(-0.5, 1.5, 2)
+    radius = np.sqrt((yy - cy) ** 2 + (xx - cx) ** 2)
+    twist = rng.uniform(-3, 3) * np.arctan2(yy - cy, xx - cx)
+    value = 0.5 + 0.5 * np.sin(2 * np.pi * rng.uniform(3, 15) * radius + twist)
+    return _to_image(value.astype(np.float32), _palette(rng, int(rng.integers(2, 4))))
+
+
+def mondrian(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Overlapping axis-aligned rectangles of random colours on a random ground."""
+    image = np.empty((size, size, 3), np.uint8)
+    image[:] = _palette(rng, 1)[0].astype(np.uint8)
+    for _ in range(int(rng.integers(5, 25))):
+        y0, x0 = rng.integers(0, size, 2)
+        h, w = rng.integers(size // 16 + 1, size // 2 + 2, 2)
+        image[y0:y0 + h, x0:x0 + w] = _palette(rng, 1)[0].astype(np.uint8)
+    return image
+
+
+#: Texture families of each procedural bank. The two sets share no family.
+FAMILIES: dict[str, dict[str, Generator]] = {
+    "train": {"clouds": clouds, "stripes": stripes, "checker": checker},
+    "heldout": {"cells": cells, "rings": rings, "mondrian": mondrian},
+}
+
+
+@dataclass(frozen=True)
+class BackgroundBank:
+    """A fixed, indexable set of square background textures; ``dr/background`` indexes it."""
+
+    source: str
+    """``train``, ``heldout``, or a directory path."""
+    textures: np.ndarray
+    """[N, S, S, 3] uint8."""
+    names: tuple[str, ...]
+    """One stable identifier per texture (family and seed, or file name and frame)."""
+
+    @property
+    def size(self) -> int:
+        return int(self.textures.shape[1])
+
+    def __len__(self) -> int:
+        return int(self.textures.shape[0])
+
+    def digest(self) -> str:
+        """SHA-256 of the texture bytes: recorded with a dataset to detect a changed bank."""
+        return hashlib.sha256(self.textures.tobytes()).hexdigest()
+
+
+def procedural_bank(source: str, count: int, size: int, seed: int = 0) -> BackgroundBank:
+    """``count`` textures of ``size``² pixels from the ``train`` or ``heldout`` families."""
+    if source not in FAMILIES:
+        raise ConfigError(f"procedural background source must be one of {sorted(FAMILIES)}, "
+                          f"got {source!r}")
+    if count < 1 or size < 1:
+        raise ConfigError(f"background count and size must be >= 1, got {count} and {size}")
+    families = list(FAMILIES[source].items())
+    textures = np.empty((count, size, size, 3), np.uint8)
+    names = []
+    for i in range(count):
+        family, make = families[i % len(families)]
+        rng = np.random.default_rng([seed, i])
+        textures[i] = make(rng, size)
+        names.append(f"{family}/{seed}/{i}")
+    return BackgroundBank(source, textures, tuple(names))
+
+
+def _square(image: np.ndarray, size: int) -> np.ndarray:
+    """Centre-crop to a square and resize to ``size``² (area filter when shrinking)."""
+    h, w = image.shape[:2]
+    side = min(h, w)
+    top, left = (h - side) // 2, (w - side) // 2
+    crop = image[top:top + side, left:left + side]
+    interpolation = cv2.INTER_AREA if side > size else cv2.INTER_LINEAR
+    return cv2.resize(crop, (size, size), interpolation=interpolation)
+
+
+def directory_bank(directory: str | Path, size: int, max_frames_per_video: int = 64) -> BackgroundBank:
+    """Every image (and up to ``max_frames_per_video`` evenly spaced frames of every video)
+    in ``directory``, sorted by file name, as ``size``² RGB textures."""
+    root = Path(directory)
+    if not root.is_dir():
+        raise BackgroundError(f"background directory {str(root)!r} does not exist or is not a folder")
+    files = sorted(p for p in root.iterdir()
+                   if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES + VIDEO_SUFFIXES)
+    if not files:
+        raise BackgroundError(f"background directory {str(root)!r} has no images or videos "
+                              f"({', '.join(IMAGE_SUFFIXES + VIDEO_SUFFIXES)})")
+    textures, names = [], []
+    for path in files:
+        frames = (_video_frames(path, max_frames_per_video) if path.suffix.lower() in VIDEO_SUFFIXES
+                  else _image_frames(path))
+        for index, frame in frames:
+            textures.append(_square(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB), size))
+            names.append(f"{path.name}#{index}")
+    if not textures:
+        raise BackgroundError(f"no file in background directory {str(root)!r} could be read "
+                              f"({len(files)} candidates)")
+    log.info("loaded %d background textures from %s", len(textures), root)
+    return BackgroundBank(str(root), np.stack(textures), tuple(names))
+
+
+def _image_frames(path: Path) -> list[tuple[int, np.ndarray]]:
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        log.warning("skipping unreadable background image %s", path)
+        return []
+    return [(0, image)]
+
+
+def _video_frames(path: Path, limit: int) -> list[tuple[int, np.ndarray]]:
+    capture = cv2.VideoCapture(str(path))
+    try:
+        count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        # Keep only evenly spaced frames while decoding, so a long video is not held in memory;
+        # containers without a frame count are decoded whole and thinned afterwards.
+        wanted = (set(np.linspace(0, count - 1, min(limit, count)).round().astype(int).tolist())
+                  if count > 0 else None)
+        frames = []
+        index = 0
+        while True:
+            ok, frame = capture.read()
+            if not ok:
+                break
+            if wanted is None or index in wanted:
+                frames.append((index, frame))
+            index += 1
+    finally:
+        capture.release()
+    if not frames:
+        log.warning("skipping unreadable background video %s", path)
+        return []
+    keep = np.unique(np.linspace(0, len(frames) - 1, min(limit, len(frames))).round().astype(int))
+    return [frames[i] for i in keep]

@@ -1,0 +1,91 @@
+"""Recording episodes of a simulated task into the dataset format (state, physics, K DR views).
+
+The collector drives :func:`record_episode` with the teacher's policy; tests, demos, contact
+sheets and the renderer benchmark drive it with :func:`random_policy`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from twist_data.randomisation import EPISODE_PARAMS, VIEW_PARAMS, DRSampler, dynamics_params
+from twist_data.render import DRRenderer
+from twist_data.schema import DatasetSpec, Episode, EpisodeInfo
+from twist_data.tasks import Step, TaskEnv
+
+#: Maps the current step (privileged state, physics, flags) to the next action in [-1, 1].
+Policy = Callable[[Step], np.ndarray]
+
+
+def random_policy(action_dim: int, seed: int = 0) -> Policy:
+    """Uniform random actions in [-1, 1] (Dreamer's prefill policy)."""
+    rng = np.random.default_rng(seed)
+
+    def act(step: Step) -> np.ndarray:
+        return rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
+
+    return act
+
+
+def library_versions() -> dict[str, str]:
+    """Versions that determine simulation and rendering results, for provenance."""
+    import dm_control
+    import mujoco
+
+    import twist_data
+
+    return {"twist": twist_data.__version__, "mujoco": mujoco.__version__,
+            "dm_control": getattr(dm_control, "__version__", "unknown")}
+
+
+def simulated_spec(env: TaskEnv, renderer: DRRenderer, extra: dict[str, Any] | None = None) -> DatasetSpec:
+    """The dataset spec of episodes recorded from ``env`` through ``renderer``."""
+    provenance = {"views": [0, renderer.views], **renderer.provenance()}
+    return DatasetSpec(
+        views=renderer.views, image_height=renderer.image_size, image_width=renderer.image_size,
+        state_dim=env.state_dim, action_dim=env.action_dim, physics_dim=env.physics_dim,
+        task=env.name, action_repeat=env.action_repeat, dr_params=VIEW_PARAMS,
+        episode_dr_params=EPISODE_PARAMS, state_layout=env.state_layout,
+        extra={"render": [provenance], "physics_layout": [list(f) for f in env.physics_layout],
+               "versions": library_versions(), **(extra or {})},
+    )
+
+
+def record_episode(env: TaskEnv, renderer: DRRenderer, sampler: DRSampler, policy: Policy,
+                   seed: int, policy_name: str = "random", teacher_step: int = -1,
+                   env_step: int = 0) -> tuple[Episode, EpisodeInfo]:
+    """Run one episode from ``env.reset(seed)`` and render K randomised views of every step."""
+    dynamics = sampler.begin_episode(seed)
+    step = env.reset(seed=seed, dynamics=dynamics)
+    steps: list[Step] = []
+    actions: list[np.ndarray] = [np.zeros(env.action_dim, np.float32)]
+    images: list[np.ndarray] = []
+    params: list[dict[str, np.ndarray]] = []
+    while True:
+        view_params = sampler.sample()
+        images.append(renderer.render(step.physics, view_params))
+        params.append(view_params)
+        steps.append(step)
+        if step.is_last:
+            break
+        action = np.clip(np.asarray(policy(step), np.float32), -1.0, 1.0)
+        actions.append(action)
+        step = env.step(action)
+    episode = Episode(
+        image=np.stack(images),
+        state=np.stack([s.state for s in steps]),
+        physics=np.stack([s.physics for s in steps]),
+        action=np.stack(actions),
+        reward=np.array([s.reward for s in steps], np.float32),
+        discount=np.array([s.discount for s in steps], np.float32),
+        is_first=np.array([s.is_first for s in steps]),
+        is_last=np.array([s.is_last for s in steps]),
+        is_terminal=np.array([s.is_terminal for s in steps]),
+        dr={p.name: np.stack([v[p.name] for v in params]) for p in VIEW_PARAMS},
+    )
+    info = EpisodeInfo(seed=seed, policy=policy_name, teacher_step=teacher_step, env_step=env_step,
+                       dr=dynamics_params(dynamics))
+    return episode, info
