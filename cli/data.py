@@ -1,4 +1,4 @@
-"""``twist-data``: inspect, verify, export and synthesise matching datasets."""
+"""``twist-data``: inspect, verify, export, re-render and synthesise matching datasets."""
 
 from __future__ import annotations
 
@@ -18,12 +18,13 @@ from rich.table import Table
 
 from twist_data.errors import TwistError
 from twist_data.export import export_hdf5, export_video
+from twist_data.randomisation import DR_PRESETS, DRConfig, dr_preset
 from twist_data.reader import open_dataset
 from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import verify_dataset
 
-app = typer.Typer(help="Inspect, verify, export and synthesise TWIST matching datasets.",
+app = typer.Typer(help="Inspect, verify, export, re-render and synthesise TWIST matching datasets.",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 out = Console()
 err = Console(stderr=True)
@@ -100,10 +101,20 @@ def episodes(dataset: DatasetArg,
 
 
 @app.command()
-def verify(dataset: DatasetArg) -> None:
+def verify(
+    dataset: DatasetArg,
+    rerender: Annotated[int, typer.Option(
+        help="Also re-render this many random steps from their physics state and DR "
+             "parameters and require pixel-identical images (simulated datasets only).")] = 0,
+) -> None:
     """Full integrity check; exit 0 when clean, 1 with one line per problem otherwise."""
     with progress_bar("verifying") as update:
         report = verify_dataset(dataset, on_progress=update)
+    if rerender > 0 and report.ok:
+        from twist_data.rerender import check_reproduction
+
+        with progress_bar("re-rendering"):
+            report.problems.extend(check_reproduction(open_dataset(dataset), rerender))
     for note in report.notes:
         err.print(f"note: {note}")
     if report.ok:
@@ -160,6 +171,78 @@ def synth(
     with progress_bar("writing") as update:
         write_synthetic_dataset(out_dir, config, on_episode=update)
     out.print(f"wrote {episodes} episodes x {steps} steps x {views} views to {out_dir}")
+
+
+BackgroundsOption = Annotated[Path | None, typer.Option(
+    "--backgrounds", help="Folder of images/videos to use as backgrounds instead of the "
+                          "procedural bank.")]
+
+
+def _dr_config(preset: str, backgrounds: Path | None) -> DRConfig:
+    config = dr_preset(preset)
+    if backgrounds is not None:
+        config = config.replace(background="directory", background_dir=str(backgrounds))
+    return config
+
+
+@app.command()
+def tasks() -> None:
+    """The simulated tasks with their state, action and physics dimensions."""
+    from twist_data.tasks import TASKS, TaskEnv
+
+    table = Table(title="twist tasks (action repeat 2)")
+    for column in ("task", "dm_control", "state", "action", "physics", "state layout"):
+        table.add_column(column)
+    for name, spec in TASKS.items():
+        env = TaskEnv(name)
+        layout = ", ".join(f"{k}:{n}" for k, n in env.state_layout)
+        table.add_row(name, f"{spec.domain}/{spec.task}", str(env.state_dim), str(env.action_dim),
+                      str(env.physics_dim), layout)
+    out.print(table)
+
+
+@app.command()
+def render(
+    dataset: DatasetArg,
+    out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="New dataset folder to create.")],
+    dr: Annotated[str, typer.Option(help=f"DR preset: {', '.join(DR_PRESETS)}.")] = "train",
+    views: Annotated[int, typer.Option(help="K new views per step.")] = 2,
+    image_size: Annotated[int | None, typer.Option(
+        help="Image side in pixels (default: the dataset's).")] = None,
+    add_views: Annotated[bool, typer.Option(
+        help="Keep the dataset's views and append the new ones.")] = False,
+    supersample: Annotated[int, typer.Option(help="Render at this multiple and downsample.")] = 1,
+    backgrounds: BackgroundsOption = None,
+    seed: Annotated[int, typer.Option(help="Seed of the new DR parameters.")] = 0,
+) -> None:
+    """Re-render a simulated dataset's stored physics states under a new DR config into OUT."""
+    from twist_data.rerender import rerender_dataset
+
+    config = _dr_config(dr, backgrounds)
+    with progress_bar("rendering") as update:
+        rerender_dataset(dataset, out_dir, config, views=views, image_size=image_size,
+                         add_views=add_views, supersample=supersample, seed=seed,
+                         on_episode=update)
+    out.print(f"wrote {out_dir}")
+
+
+@app.command("contact-sheet")
+def contact_sheet_cmd(
+    task: Annotated[str, typer.Argument(help="Task name (see `twist-data tasks`).")],
+    out_path: Annotated[Path, typer.Argument(metavar="OUT", help="Output .png file.")],
+    views: Annotated[int, typer.Option(help="Views per row.")] = 6,
+    image_size: Annotated[int, typer.Option(help="Image side in pixels.")] = 64,
+    seed: Annotated[int, typer.Option(help="Seed of the state and the DR draws.")] = 0,
+    backgrounds: BackgroundsOption = None,
+) -> None:
+    """PNG of one state: a row of train-distribution views, a row of held-out views."""
+    from twist_data.sheets import contact_sheet, write_contact_sheet
+
+    rows = {"train": dr_preset("train"), "heldout": dr_preset("heldout")}
+    if backgrounds is not None:
+        rows["user"] = _dr_config("heldout", backgrounds)
+    sheet = contact_sheet(task, views=views, image_size=image_size, seed=seed, rows=rows)
+    out.print(f"wrote {write_contact_sheet(out_path, sheet)}")
 
 
 def main() -> None:

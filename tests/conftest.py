@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+# Rendering tests run headless: pick EGL before anything imports MuJoCo (twist_data does the
+# same by default; this keeps the tests independent of that).
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 

@@ -36,7 +36,7 @@ import numpy as np
 from twist_data.backgrounds import BackgroundBank, directory_bank, procedural_bank
 from twist_data.errors import ConfigError, RenderUnavailableError
 from twist_data.randomisation import COLOUR_GROUPS, VIEW_PARAMS, DRConfig, DRSampler
-from twist_data.tasks import TaskSpec, restore_physics, task_spec
+from twist_data.tasks import TaskSpec, load_suite_env, restore_physics, task_spec
 
 log = logging.getLogger(__name__)
 
@@ -48,10 +48,7 @@ _MAX_FRAMEBUFFER = 2048
 
 def load_task_model(spec: TaskSpec):
     """The task's compiled MuJoCo model, as dm_control builds it (no simulation state)."""
-    from dm_control import suite
-
-    env = suite.load(spec.domain, spec.task, task_kwargs={"random": 0})
-    return env.physics.model.ptr
+    return load_suite_env(spec).physics.model.ptr
 
 
 def background_bank(config: DRConfig, texture_size: int) -> BackgroundBank | None:

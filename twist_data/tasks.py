@@ -70,6 +70,20 @@ def task_spec(name: str) -> TaskSpec:
         ) from None
 
 
+def load_suite_env(spec: TaskSpec, seed: int = 0):
+    """dm_control's environment for ``spec``, without its model-compiler deprecation chatter."""
+    from dm_control import suite
+
+    absl = logging.getLogger("absl")
+    level = absl.level
+    # cheetah.xml uses a deprecated compiler attribute; MuJoCo warns on every load.
+    absl.setLevel(logging.ERROR)
+    try:
+        return suite.load(spec.domain, spec.task, task_kwargs={"random": seed})
+    finally:
+        absl.setLevel(level)
+
+
 @dataclass(frozen=True)
 class Step:
     """One agent step in the dataset's time convention (reward and action led *to* this step)."""
@@ -117,9 +131,7 @@ class TaskEnv:
         self.max_steps = max_steps
         self._steps = 0
         self.spec = task_spec(task)
-        from dm_control import suite
-
-        self._env = suite.load(self.spec.domain, self.spec.task, task_kwargs={"random": seed})
+        self._env = load_suite_env(self.spec, seed)
         self.action_repeat = action_repeat
         self.physics = self._env.physics
         self.model = self.physics.model.ptr

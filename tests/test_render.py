@@ -1,0 +1,274 @@
+"""Domain randomisation: backgrounds, parameter sampling, rendering, re-rendering."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from twist_data.backgrounds import FAMILIES, directory_bank, procedural_bank
+from twist_data.errors import BackgroundError, ConfigError, PhysicsStateError, RenderUnavailableError
+from twist_data.randomisation import DR_PRESETS, DRConfig, DRSampler, dr_preset
+from twist_data.reader import open_dataset
+from twist_data.render import DRRenderer
+from twist_data.rerender import check_reproduction, rerender_dataset
+from twist_data.rollout import random_policy, record_episode, simulated_spec
+from twist_data.tasks import TaskEnv
+from twist_data.verify import verify_dataset
+from twist_data.writer import ShardWriter
+
+
+@pytest.fixture(scope="module")
+def gl() -> None:
+    """Skip rendering tests, with the reason, only if no OpenGL context can be made at all."""
+    try:
+        DRRenderer("cartpole-balance", dr_preset("none"), 8, 1).close()
+    except RenderUnavailableError as exc:
+        pytest.skip(f"no offscreen OpenGL on this machine: {exc}")
+
+
+@pytest.fixture
+def renderer(gl: None) -> Iterator[DRRenderer]:
+    with DRRenderer("cartpole-balance", dr_preset("train"), 32, 2) as r:
+        yield r
+
+
+# -- backgrounds ----------------------------------------------------------------------------
+
+def test_train_and_heldout_banks_share_no_texture() -> None:
+    train, heldout = procedural_bank("train", 48, 32), procedural_bank("heldout", 48, 32)
+    assert not set(FAMILIES["train"]) & set(FAMILIES["heldout"])
+    families = {bank.source: {n.split("/")[0] for n in bank.names} for bank in (train, heldout)}
+    assert families == {"train": set(FAMILIES["train"]), "heldout": set(FAMILIES["heldout"])}
+    a = train.textures.reshape(len(train), -1).astype(np.int16)
+    b = heldout.textures.reshape(len(heldout), -1).astype(np.int16)
+    nearest = np.abs(a[:, None] - b[None]).mean(-1).min()
+    assert nearest > 5, "some held-out texture is (nearly) a training texture"
+    # Deterministic: the bank is a pure function of its arguments, and the seed matters.
+    np.testing.assert_array_equal(procedural_bank("train", 48, 32).textures, train.textures)
+    assert procedural_bank("train", 48, 32, seed=1).digest() != train.digest()
+
+
+def test_directory_bank_reads_images_and_video_frames(tmp_path: Path) -> None:
+    red = np.zeros((40, 60, 3), np.uint8)
+    red[..., 2] = 255  # BGR on disk
+    cv2.imwrite(str(tmp_path / "a.png"), red)
+    (tmp_path / "broken.jpg").write_bytes(b"not an image")
+    (tmp_path / "notes.txt").write_text("ignored")
+    writer = cv2.VideoWriter(str(tmp_path / "clip.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10,
+                             (32, 32))
+    for i in range(10):
+        writer.write(np.full((32, 32, 3), 20 * i, np.uint8))
+    writer.release()
+    bank = directory_bank(tmp_path, 16, max_frames_per_video=4)
+    assert bank.textures.shape == (5, 16, 16, 3)
+    assert bank.names[0] == "a.png#0" and bank.names[1:] == tuple(f"clip.avi#{i}" for i in (0, 3, 6, 9))
+    assert (bank.textures[0] == (255, 0, 0)).all()  # stored RGB
+    assert bank.textures[4].mean() > bank.textures[1].mean() + 100
+
+
+def test_background_directory_errors(tmp_path: Path) -> None:
+    with pytest.raises(BackgroundError, match="does not exist"):
+        directory_bank(tmp_path / "missing", 16)
+    with pytest.raises(BackgroundError, match="has no images"):
+        directory_bank(tmp_path, 16)
+    (tmp_path / "x.png").write_bytes(b"garbage")
+    with pytest.raises(BackgroundError, match=r"no file .* could be read"):
+        directory_bank(tmp_path, 16)
+
+
+# -- parameter sampling ---------------------------------------------------------------------
+
+def _sampler(resample: str) -> DRSampler:
+    config = DRConfig(resample=resample, friction_range=(0.5, 2.0))
+    return DRSampler(config, np.full((5, 3), 0.5), views=3, n_backgrounds=10, max_offset=8, seed=0)
+
+
+def test_per_step_sampling_changes_every_step() -> None:
+    sampler = _sampler("step")
+    sampler.begin_episode()
+    a, b = sampler.sample(), sampler.sample()
+    assert a["colour"].shape == (3, 5, 3) and a["background_offset"].shape == (3, 2)
+    assert not np.array_equal(a["colour"], b["colour"])
+    assert not np.array_equal(a["colour"][0], a["colour"][1])  # views are independent
+    assert np.all(np.abs(a["colour"] - 0.5) <= 0.3 + 1e-6)
+    assert a["background"].min() >= 0 and a["background"].max() < 10
+
+
+def test_per_episode_sampling_is_constant_within_an_episode() -> None:
+    sampler = _sampler("episode")
+    dyn1 = sampler.begin_episode(seed=1)
+    first = [sampler.sample() for _ in range(4)]
+    for other in first[1:]:
+        for key in first[0]:
+            np.testing.assert_array_equal(first[0][key], other[key])
+    dyn2 = sampler.begin_episode(seed=2)
+    assert not np.array_equal(sampler.sample()["colour"], first[0]["colour"])
+    assert dyn1 != dyn2 and 0.5 <= dyn1.friction_scale <= 2.0
+    # An episode's draws are a function of its seed alone.
+    again = _sampler("episode")
+    assert again.begin_episode(seed=1) == dyn1
+    np.testing.assert_array_equal(again.sample()["colour"], first[0]["colour"])
+
+
+def test_config_validation_and_presets() -> None:
+    assert DR_PRESETS["train"].resample == "step" and DR_PRESETS["train"].background == "train"
+    assert DR_PRESETS["heldout"].resample == "episode" and DR_PRESETS["heldout"].background == "heldout"
+    assert DRConfig.from_json(DR_PRESETS["heldout-full"].to_json()) == DR_PRESETS["heldout-full"]
+    with pytest.raises(ConfigError, match="unknown DR preset 'bogus'"):
+        dr_preset("bogus")
+    with pytest.raises(ConfigError, match="colour_delta"):
+        DRConfig(colour_delta=2.0)
+    with pytest.raises(ConfigError, match="background_dir"):
+        DRConfig(background="directory")
+    with pytest.raises(ConfigError, match="light_range"):
+        DRConfig(light_range=(2.0, 1.0))
+
+
+# -- rendering ------------------------------------------------------------------------------
+
+def _state(task: str = "cartpole-balance", steps: int = 5) -> np.ndarray:
+    env = TaskEnv(task)
+    env.reset(seed=0)
+    for _ in range(steps):
+        env.step(np.full(env.action_dim, 0.5))
+    return env.physics_state()
+
+
+def test_render_is_deterministic_and_composites_the_background(renderer: DRRenderer) -> None:
+    physics = _state()
+    sampler = renderer.sampler(3)
+    sampler.begin_episode()
+    params = sampler.sample()
+    images = renderer.render(physics, params)
+    assert images.shape == (2, 32, 32, 3) and images.dtype == np.uint8
+    np.testing.assert_array_equal(images, renderer.render(physics, params))
+    # The top-left corner of a cartpole view is sky, so it shows the chosen texture crop.
+    for v in range(2):
+        y, x = params["background_offset"][v]
+        texture = renderer.bank.textures[params["background"][v]]
+        np.testing.assert_array_equal(images[v, 0, 0], texture[y, x])
+        np.testing.assert_array_equal(images[v, 0, :4], texture[y, x:x + 4])
+
+
+def test_render_parameters_change_the_picture(renderer: DRRenderer) -> None:
+    physics = _state()
+    sampler = renderer.sampler(0)
+    sampler.begin_episode()
+    params = sampler.sample()
+    base = renderer.render(physics, params).astype(np.int32)
+    dark = {**params, "light": np.full(2, 0.4, np.float32)}
+    bright = {**params, "light": np.full(2, 1.6, np.float32)}
+    assert renderer.render(physics, dark).sum() < base.sum() < renderer.render(physics, bright).sum()
+    recoloured = {**params, "colour": 1.0 - params["colour"]}
+    assert np.abs(renderer.render(physics, recoloured).astype(np.int32) - base).max() > 50
+    moved = {**params, "camera_shift": np.tile(np.float32([0.3, 0.0, 0.0]), (2, 1))}
+    assert not np.array_equal(renderer.render(physics, moved), base)
+
+
+def test_render_rejects_bad_input(renderer: DRRenderer, gl: None) -> None:
+    sampler = renderer.sampler(0)
+    sampler.begin_episode()
+    params = sampler.sample()
+    with pytest.raises(PhysicsStateError, match="length 5"):
+        renderer.render(np.zeros(7), params)
+    with pytest.raises(ConfigError, match="'colour' must have shape"):
+        renderer.render(_state(), {**params, "colour": params["colour"][:1]})
+    with pytest.raises(ConfigError, match="background index out of range"):
+        renderer.render(_state(), {**params, "background": np.array([0, 10_000], np.int32)})
+    with pytest.raises(ConfigError, match="image_size must be a positive"):
+        DRRenderer("cartpole-balance", dr_preset("train"), 0, 2)
+    with pytest.raises(ConfigError, match="views"):
+        DRRenderer("cartpole-balance", dr_preset("train"), 16, 0)
+
+
+@pytest.mark.parametrize("task", ["cup-catch", "cheetah-run", "hopper-stand", "walker-walk",
+                                  "finger-turn_easy"])
+def test_every_task_renders_randomised_views(task: str, gl: None) -> None:
+    with DRRenderer(task, dr_preset("heldout-full"), 24, 3) as r:
+        sampler = r.sampler(0)
+        sampler.begin_episode()
+        images = r.render(_state(task, 3), sampler.sample())
+    assert images.shape == (3, 24, 24, 3)
+    assert images.std() > 10  # textured, not blank
+    assert not np.array_equal(images[0], images[1])
+
+
+# -- datasets: reproduce, re-render, add views ----------------------------------------------
+
+@pytest.fixture(scope="module")
+def sim_dataset(tmp_path_factory: pytest.TempPathFactory, gl: None) -> Path:
+    """Two short finger episodes (target site in the physics vector), K=2, 24x24, train-full."""
+    out = tmp_path_factory.mktemp("sim") / "ds"
+    env = TaskEnv("finger-turn_easy", max_steps=12)
+    with DRRenderer(env.name, dr_preset("train-full"), 24, 2) as r:
+        sampler = r.sampler(0)
+        with ShardWriter.create(out, "collector-000", simulated_spec(env, r)) as writer:
+            for seed in range(2):
+                writer.append(*record_episode(env, r, sampler, random_policy(2, seed), seed=seed))
+    return out
+
+
+def test_recorded_dataset_verifies_and_reproduces_pixel_exactly(sim_dataset: Path) -> None:
+    assert verify_dataset(sim_dataset).ok
+    ds = open_dataset(sim_dataset)
+    assert ds.n_episodes == 2 and ds.n_steps == 26 and ds.spec.physics_dim == 13
+    assert check_reproduction(ds, n_steps=26) == []
+    # Per-step DR: consecutive steps have different parameters; dynamics recorded per episode.
+    colour = ds.column("dr/colour")
+    assert not np.array_equal(colour[0], colour[1])
+    for seed in range(2):  # the episode's dynamics are the sampler's draw for its seed
+        expected = DRSampler(dr_preset("train-full"), np.zeros((5, 3)), 2, 1, 0)
+        friction = expected.begin_episode(seed).friction_scale
+        assert ds.episode_info(seed).dr["friction_scale"] == np.float32(friction) != 1.0
+
+
+def test_rerender_new_config_keeps_everything_but_images(sim_dataset: Path, tmp_path: Path) -> None:
+    out = rerender_dataset(sim_dataset, tmp_path / "re", dr_preset("heldout"), views=3, seed=5)
+    src, new = open_dataset(sim_dataset), open_dataset(out)
+    assert new.spec.views == 3 and verify_dataset(out).ok
+    for key in ("state", "physics", "action", "reward", "is_first"):
+        np.testing.assert_array_equal(src.column(key), new.column(key))
+    assert new.episode_info(1) == src.episode_info(1)
+    background = new.column("dr/background")  # held-out: one draw per episode
+    ends = new.episodes()["length"].cumsum().to_numpy()
+    assert (background[: ends[0]] == background[0]).all()
+    assert check_reproduction(new, n_steps=10) == []
+
+
+def test_rerender_add_views_keeps_the_original_views(sim_dataset: Path, tmp_path: Path) -> None:
+    out = rerender_dataset(sim_dataset, tmp_path / "more", dr_preset("heldout"), views=1,
+                           add_views=True)
+    src, new = open_dataset(sim_dataset), open_dataset(out)
+    assert new.spec.views == 3
+    np.testing.assert_array_equal(new.episode(0).image[:, :2], src.episode(0).image)
+    assert [b["views"] for b in new.spec.extra["render"]] == [[0, 2], [2, 3]]
+    assert check_reproduction(new, n_steps=8) == []
+
+
+def test_reproduction_detects_tampered_parameters(sim_dataset: Path, tmp_path: Path) -> None:
+    import shutil
+
+    import zarr
+
+    copy = tmp_path / "copy"
+    shutil.copytree(sim_dataset, copy)
+    shard = zarr.open_group(str(copy / "collector-000.zarr"), mode="r+")
+    light = shard["data/dr/light"]
+    light[3] = light[3] * 0.5
+    problems = check_reproduction(open_dataset(copy), n_steps=26)
+    assert problems and all(p.startswith("step 3 view") for p in problems)
+
+
+def test_rerender_cli_errors_leave_no_output(small_dataset: Path, tmp_path: Path) -> None:
+    out = tmp_path / "never"
+    result = subprocess.run([sys.executable, "-m", "twist_cli.data", "render", str(small_dataset),
+                             str(out)], capture_output=True, text=True)
+    assert result.returncode == 2
+    assert result.stderr.strip().startswith("error: unknown task 'synthetic-cartpole'")
+    assert "Traceback" not in result.stderr and not out.exists()

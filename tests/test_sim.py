@@ -1,0 +1,104 @@
+"""Simulated tasks: privileged state, physics state, dynamics randomisation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twist_data.errors import ConfigError, PhysicsStateError, UnknownTaskError
+from twist_data.tasks import TASKS, Dynamics, TaskEnv
+
+# Observation sizes of the DMC tasks as DreamerV2/DrQ report them for state-based agents.
+KNOWN_STATE_DIMS = {"cup-catch": 8, "cartpole-balance": 5, "cheetah-run": 17, "hopper-stand": 15,
+                    "walker-walk": 24, "finger-turn_easy": 12}
+
+
+@pytest.mark.parametrize("task", sorted(TASKS))
+def test_state_and_physics_dimensions(task: str) -> None:
+    env = TaskEnv(task, max_steps=3)
+    step = env.reset(seed=0)
+    assert step.state.shape == (KNOWN_STATE_DIMS[task],) == (env.state_dim,)
+    assert step.state.dtype == np.float32
+    spec_dims = sum(int(np.prod(s.shape)) for s in env._env.observation_spec().values())
+    assert env.state_dim == spec_dims
+    m = env.model
+    extra = 6 if task == "finger-turn_easy" else 0  # target site position and size
+    assert step.physics.shape == (1 + m.nq + m.nv + m.na + extra,) == (env.physics_dim,)
+    assert sum(n for _, n in env.physics_layout) == env.physics_dim
+    assert env.action_dim == env._env.action_spec().shape[0]
+
+
+def test_unknown_task_lists_valid_names() -> None:
+    with pytest.raises(UnknownTaskError, match="valid tasks are: cartpole-balance, cheetah-run"):
+        TaskEnv("cartpole-swingup")
+
+
+def test_episode_flags_rewards_and_action_repeat() -> None:
+    env, single = TaskEnv("cartpole-balance", action_repeat=2), TaskEnv("cartpole-balance",
+                                                                       action_repeat=1)
+    first = env.reset(seed=4)
+    single.reset(seed=4)
+    assert first.is_first and not first.is_last and first.reward == 0.0
+    action = np.array([0.3])
+    step = env.step(action)
+    rewards = [single.step(action).reward for _ in range(2)]
+    # Two simulator steps per agent step: same state as two single steps, rewards summed.
+    np.testing.assert_array_equal(step.physics, single.physics_state())
+    assert step.reward == pytest.approx(sum(rewards))
+    assert step.physics[0] == pytest.approx(2 * 0.01)  # time advanced by two control steps
+    n = 1
+    while not step.is_last:
+        step = env.step(action)
+        n += 1
+    # 1000 control steps at repeat 2: 500 agent steps after the reset step (501 rows).
+    assert n == 500 and step.discount == 1.0 and not step.is_terminal  # a time limit
+    with pytest.raises(ConfigError, match="reset"):
+        env.step(action)
+
+
+def test_determinism_under_a_seed() -> None:
+    runs = []
+    for _ in range(2):
+        env = TaskEnv("walker-walk", max_steps=10)
+        steps = [env.reset(seed=11)]
+        rng = np.random.default_rng(0)
+        while not steps[-1].is_last:
+            steps.append(env.step(rng.uniform(-1, 1, env.action_dim)))
+        runs.append(np.stack([s.physics for s in steps]))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    other = TaskEnv("walker-walk").reset(seed=12)
+    assert not np.array_equal(other.physics, runs[0][0])
+
+
+def test_restoring_physics_reproduces_the_future() -> None:
+    env = TaskEnv("finger-turn_easy")
+    env.reset(seed=1)
+    for _ in range(5):
+        env.step(np.array([0.5, -0.5]))
+    saved = env.physics_state()
+    later = [env.step(np.array([0.2, 0.1])).physics for _ in range(3)]
+    fresh = TaskEnv("finger-turn_easy")
+    fresh.reset(seed=99)  # a different target and pose
+    fresh.set_physics_state(saved)
+    np.testing.assert_array_equal(fresh.physics_state(), saved)
+    replay = [fresh.step(np.array([0.2, 0.1])).physics for _ in range(3)]
+    np.testing.assert_array_equal(np.stack(replay), np.stack(later))
+
+
+def test_wrong_physics_length_is_refused() -> None:
+    env = TaskEnv("cheetah-run")
+    with pytest.raises(PhysicsStateError, match=r"length 19, got shape \(5,\)"):
+        env.set_physics_state(np.zeros(5))
+
+
+def test_dynamics_scales_apply_per_episode() -> None:
+    env = TaskEnv("hopper-stand")
+    friction, mass = env.model.geom_friction[:, 0].copy(), env.model.body_mass.copy()
+    env.reset(dynamics=Dynamics(friction_scale=2.0, mass_scale=0.5))
+    np.testing.assert_allclose(env.model.geom_friction[:, 0], friction * 2.0)
+    np.testing.assert_allclose(env.model.body_mass, mass * 0.5)
+    env.reset()  # nominal again, not compounded
+    np.testing.assert_allclose(env.model.geom_friction[:, 0], friction)
+    np.testing.assert_allclose(env.model.body_mass, mass)
+    with pytest.raises(ConfigError, match="mass_scale"):
+        Dynamics(mass_scale=0.0)
