@@ -226,6 +226,31 @@ def render(
     out.print(f"wrote {out_dir}")
 
 
+@app.command()
+def record(
+    task: Annotated[str, typer.Argument(help="Task name (see `twist-data tasks`).")],
+    out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="Dataset folder (a new shard "
+                                                               "is added).")],
+    episodes: Annotated[int, typer.Option(help="Number of episodes.")] = 2,
+    dr: Annotated[str, typer.Option(help=f"DR preset: {', '.join(DR_PRESETS)}.")] = "train",
+    views: Annotated[int, typer.Option(help="K views per step.")] = 2,
+    image_size: Annotated[int, typer.Option(help="Image side in pixels.")] = 64,
+    max_steps: Annotated[int | None, typer.Option(
+        help="End episodes after this many agent steps (default: the task's 500).")] = None,
+    shard: Annotated[str, typer.Option(help="Name of the shard to create.")] = "random-000",
+    backgrounds: BackgroundsOption = None,
+    seed: Annotated[int, typer.Option(help="Seed of everything.")] = 0,
+) -> None:
+    """Record random-policy episodes of a task with K randomised views (prefill, demos)."""
+    from twist_data.rollout import record_dataset
+
+    config = _dr_config(dr, backgrounds)
+    with progress_bar("recording") as update:
+        record_dataset(out_dir, task, episodes, config, views=views, image_size=image_size,
+                       max_steps=max_steps, seed=seed, shard=shard, on_episode=update)
+    out.print(f"wrote {episodes} episodes of {task} to {out_dir}")
+
+
 @app.command("contact-sheet")
 def contact_sheet_cmd(
     task: Annotated[str, typer.Argument(help="Task name (see `twist-data tasks`).")],

@@ -1,14 +1,20 @@
 #!/usr/bin/env bash
-# The main job on the embedded default. Today: write a synthetic matching dataset, inspect,
-# verify and export it. (Collection, distillation and evaluation join as they land.)
+# The main job on the embedded default task, cartpole-balance. Today: record random-policy
+# episodes with K=2 domain-randomised views, inspect, verify (including a pixel-exact
+# re-render), re-render under held-out DR, export, and draw a contact sheet.
+# (Teacher collection, distillation and evaluation join as they land.)
 set -euo pipefail
 . "$(dirname "$0")/bootstrap.sh"
 OUT="${1:-runs/demo}"
-rm -rf "$OUT/dataset"
-twist-data synth "$OUT/dataset" --episodes 8 --steps 251 --views 2 --image-size 64 --shards 2
+TASK="${TASK:-cartpole-balance}"
+rm -rf "$OUT/dataset" "$OUT/heldout"
+twist-data record "$TASK" "$OUT/dataset" --episodes 4 --dr train --views 2 --image-size 64
 twist-data info "$OUT/dataset"
 twist-data episodes "$OUT/dataset" --csv "$OUT/episodes.csv"
-twist-data verify "$OUT/dataset"
+twist-data verify "$OUT/dataset" --rerender 20
+twist-data render "$OUT/dataset" "$OUT/heldout" --dr heldout --views 2
 twist-data export-video "$OUT/dataset" "$OUT/episode0.mp4" --episode 0
+twist-data export-video "$OUT/heldout" "$OUT/episode0-heldout.mp4" --episode 0
 twist-data export-hdf5 "$OUT/dataset" "$OUT/dataset.h5"
+twist-data contact-sheet "$TASK" "$OUT/contact-sheet.png"
 echo "main job done: results in $OUT"

@@ -272,3 +272,20 @@ def test_rerender_cli_errors_leave_no_output(small_dataset: Path, tmp_path: Path
     assert result.returncode == 2
     assert result.stderr.strip().startswith("error: unknown task 'synthetic-cartpole'")
     assert "Traceback" not in result.stderr and not out.exists()
+
+
+def test_record_cli_writes_a_verifiable_deterministic_dataset(tmp_path: Path, gl: None) -> None:
+    def record(out: Path) -> None:
+        subprocess.run([sys.executable, "-m", "twist_cli.data", "record", "cup-catch", str(out),
+                        "--episodes", "2", "--max-steps", "4", "--image-size", "16", "--dr",
+                        "heldout-full", "--seed", "7"], check=True, capture_output=True)
+
+    record(tmp_path / "a")
+    record(tmp_path / "b")
+    a, b = open_dataset(tmp_path / "a"), open_dataset(tmp_path / "b")
+    assert a.n_episodes == 2 and a.n_steps == 10 and a.spec.task == "cup-catch"
+    assert verify_dataset(tmp_path / "a").ok
+    for key in ("physics", "action", "dr/colour"):
+        np.testing.assert_array_equal(a.column(key), b.column(key))
+    np.testing.assert_array_equal(a.episode(1).image, b.episode(1).image)
+    assert a.episodes()["env_step"].tolist() == [0, 8]  # 4 agent steps x action repeat 2

@@ -6,15 +6,28 @@ sheets and the renderer benchmark drive it with :func:`random_policy`.
 
 from __future__ import annotations
 
+import logging
+import os
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from twist_data.randomisation import EPISODE_PARAMS, VIEW_PARAMS, DRSampler, dynamics_params
+from twist_data.errors import ConfigError
+from twist_data.randomisation import (
+    EPISODE_PARAMS,
+    VIEW_PARAMS,
+    DRConfig,
+    DRSampler,
+    dynamics_params,
+)
 from twist_data.render import DRRenderer
 from twist_data.schema import DatasetSpec, Episode, EpisodeInfo
 from twist_data.tasks import Step, TaskEnv
+from twist_data.writer import ShardWriter
+
+log = logging.getLogger(__name__)
 
 #: Maps the current step (privileged state, physics, flags) to the next action in [-1, 1].
 Policy = Callable[[Step], np.ndarray]
@@ -89,3 +102,32 @@ def record_episode(env: TaskEnv, renderer: DRRenderer, sampler: DRSampler, polic
     info = EpisodeInfo(seed=seed, policy=policy_name, teacher_step=teacher_step, env_step=env_step,
                        dr=dynamics_params(dynamics))
     return episode, info
+
+
+def record_dataset(out: str | os.PathLike[str], task: str, episodes: int, config: DRConfig,
+                   views: int = 2, image_size: int = 64, action_repeat: int = 2,
+                   max_steps: int | None = None, seed: int = 0, shard: str = "random-000",
+                   on_episode: Callable[[int, int], None] | None = None) -> Path:
+    """Record ``episodes`` random-policy episodes of ``task`` into a new shard of ``out``.
+
+    Episode i uses seed ``SeedSequence([seed, i])`` for the task's initial state, the policy
+    and the randomisation, so the data is a pure function of the arguments.
+    """
+    if episodes < 1:
+        raise ConfigError(f"episodes must be >= 1, got {episodes}")
+    env = TaskEnv(task, action_repeat=action_repeat, seed=seed, max_steps=max_steps)
+    with DRRenderer(task, config, image_size, views) as renderer:
+        sampler = renderer.sampler(seed)
+        with ShardWriter.create(out, shard, simulated_spec(env, renderer)) as writer:
+            frames = 0
+            for i in range(episodes):
+                episode_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+                episode, info = record_episode(env, renderer, sampler,
+                                               random_policy(env.action_dim, episode_seed),
+                                               seed=episode_seed, env_step=frames)
+                writer.append(episode, info)
+                frames += (len(episode) - 1) * action_repeat
+                if on_episode is not None:
+                    on_episode(i + 1, episodes)
+    log.info("recorded %d random episodes of %s into %s", episodes, task, out)
+    return Path(out)
