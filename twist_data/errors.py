@@ -53,3 +53,11 @@ class BackgroundError(TwistError):
 
 class RenderUnavailableError(TwistError):
     """No OpenGL context could be created for offscreen rendering."""
+
+
+class CheckpointError(TwistError):
+    """A file is not a readable twist checkpoint, or holds a different kind of model."""
+
+
+class CheckpointMismatchError(CheckpointError):
+    """A checkpoint's configuration does not match the model or data it is loaded for."""

@@ -1,0 +1,135 @@
+"""Actor-critic in imagination (DreamerV2, ``actor_grad: dynamics`` for continuous actions)."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+from torch import nn
+
+from twist_models.config import ActorCriticConfig, OptimConfig
+from twist_models.losses import gaussian_nll, lambda_returns
+from twist_models.networks import MLP
+from twist_models.rssm import State
+from twist_models.world_model import WorldModel
+
+_SQRT2 = math.sqrt(2.0)
+
+
+def _normal_cdf(x: torch.Tensor) -> torch.Tensor:
+    return 0.5 * (1 + torch.erf(x / _SQRT2))
+
+
+def _normal_pdf(x: torch.Tensor) -> torch.Tensor:
+    return torch.exp(-0.5 * x**2) / math.sqrt(2 * math.pi)
+
+
+class TruncatedNormal:
+    """Normal(mean, std) truncated to [low, high], reparameterised by the inverse CDF."""
+
+    def __init__(self, mean: torch.Tensor, std: torch.Tensor, low: float = -1.0,
+                 high: float = 1.0) -> None:
+        self.mean, self.std, self.low, self.high = mean, std, low, high
+        self._alpha = (low - mean) / std
+        self._beta = (high - mean) / std
+        self._z = (_normal_cdf(self._beta) - _normal_cdf(self._alpha)).clamp_min(1e-8)
+
+    def rsample(self) -> torch.Tensor:
+        """A sample with gradients to mean and std: [...]."""
+        u = torch.rand_like(self.mean)
+        cdf = _normal_cdf(self._alpha) + u * self._z
+        x = self.mean + self.std * _SQRT2 * torch.erfinv((2 * cdf - 1).clamp(-1 + 1e-6, 1 - 1e-6))
+        return x.clamp(self.low, self.high)
+
+    def entropy(self) -> torch.Tensor:
+        """Per-dimension entropy [...]."""
+        a, b = self._alpha, self._beta
+        return (torch.log(math.sqrt(2 * math.pi * math.e) * self.std * self._z)
+                + (a * _normal_pdf(a) - b * _normal_pdf(b)) / (2 * self._z))
+
+    def log_prob(self, x: torch.Tensor) -> torch.Tensor:
+        z = (x - self.mean) / self.std
+        return -0.5 * z**2 - math.log(math.sqrt(2 * math.pi)) - torch.log(self.std * self._z)
+
+    @property
+    def mode(self) -> torch.Tensor:
+        return self.mean.clamp(self.low, self.high)
+
+
+class Actor(nn.Module):
+    """feature [..., F] -> truncated normal over actions in [-1, 1]^A."""
+
+    def __init__(self, feature_dim: int, action_dim: int, config: ActorCriticConfig) -> None:
+        super().__init__()
+        self.net = MLP(feature_dim, 2 * action_dim, config.actor)
+        self.min_std = config.min_std
+
+    def forward(self, feature: torch.Tensor) -> TruncatedNormal:
+        mean, std = self.net(feature).chunk(2, -1)
+        return TruncatedNormal(torch.tanh(mean), 2 * torch.sigmoid(std / 2) + self.min_std)
+
+
+class ActorCritic(nn.Module):
+    """Actor, critic and the critic's slow target, trained on imagined rollouts."""
+
+    def __init__(self, feature_dim: int, action_dim: int, config: ActorCriticConfig,
+                 optim: OptimConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.actor = Actor(feature_dim, action_dim, config)
+        self.critic = MLP(feature_dim, 1, config.critic)
+        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.grad_clip = optim.grad_clip
+        self.actor_opt = torch.optim.AdamW(self.actor.parameters(), config.actor_lr, eps=optim.eps,
+                                           weight_decay=optim.weight_decay)
+        self.critic_opt = torch.optim.AdamW(self.critic.parameters(), config.critic_lr,
+                                            eps=optim.eps, weight_decay=optim.weight_decay)
+        self.register_buffer("updates", torch.zeros((), dtype=torch.int64))
+
+    def value(self, feature: torch.Tensor, target: bool = False) -> torch.Tensor:
+        return (self.target_critic if target else self.critic)(feature).squeeze(-1)
+
+    def train_step(self, world_model: WorldModel, start: State) -> dict[str, torch.Tensor]:
+        """One actor and one critic update from imagined rollouts of every ``start`` state
+        ({k: [N, ...]}, detached). The world model is frozen but differentiated through."""
+        c = self.config
+        rssm = world_model.rssm
+        frozen = [p for p in world_model.parameters() if p.requires_grad]
+        for p in frozen:
+            p.requires_grad_(False)
+        try:
+            states, _ = rssm.imagine(start, c.horizon, policy=lambda f: self.actor(f).rsample())
+            feature = rssm.feature(states)  # [N, H+1, F]
+            feature_t = feature.transpose(0, 1)  # time first: [H+1, N, F]
+            reward = world_model.reward(feature_t)
+            pcont = c.discount * world_model.continuation(feature_t)
+            value = self.value(feature_t, target=True)
+            # Transition t leaves state t and arrives in t + 1, whose predicted reward and
+            # continuation it earns (the dataset's convention: reward[t] is for arriving at t).
+            returns = lambda_returns(reward[1:], value[:-1], pcont[1:], value[-1], c.lambda_)
+            weight = torch.cumprod(torch.cat([torch.ones_like(pcont[:1]), pcont[1:-1]], 0), 0)
+            weight = weight.detach()
+            policy = self.actor(feature_t[:-1].detach())
+            entropy = policy.entropy().sum(-1)
+            actor_loss = -(weight * (returns + c.entropy * entropy)).mean()
+        finally:
+            for p in frozen:
+                p.requires_grad_(True)
+        self._step(self.actor_opt, actor_loss, self.actor)
+        critic_loss = (weight * gaussian_nll(self.value(feature_t[:-1].detach()),
+                                             returns.detach(), 0)).mean()
+        self._step(self.critic_opt, critic_loss, self.critic)
+        self.updates += 1
+        if int(self.updates) % c.slow_target_every == 0:
+            self.target_critic.load_state_dict(self.critic.state_dict())
+        return {"actor_loss": actor_loss.detach(), "critic_loss": critic_loss.detach(),
+                "imagined_return": returns[0].mean().detach(),
+                "actor_entropy": entropy.mean().detach(),
+                "imagined_reward": reward[1:].mean().detach()}
+
+    def _step(self, optimiser: torch.optim.Optimizer, loss: torch.Tensor, module: nn.Module) -> None:
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(module.parameters(), self.grad_clip)
+        optimiser.step()

@@ -1,0 +1,115 @@
+"""One checkpoint format for teacher and student: weights, optimiser states, config, counters.
+
+A checkpoint is a ``torch.save`` file of plain containers, tensors and JSON-typed values only,
+read back with ``torch.load(weights_only=True)``: loading never unpickles arbitrary objects.
+Files are written to a temporary name and renamed, so a crash never leaves a torn checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from twist_data.errors import CheckpointError, CheckpointMismatchError
+from twist_models.config import to_json
+
+FORMAT = "twist.checkpoint"
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """The contents of a checkpoint file."""
+
+    kind: str
+    """``teacher`` or ``student``."""
+    config: dict[str, Any]
+    """The model's config as JSON (rebuild with ``config.from_json``)."""
+    weights: dict[str, torch.Tensor]
+    """The module's state dict."""
+    optimisers: dict[str, Any]
+    """Optimiser state dicts by name."""
+    counters: dict[str, int]
+    """Step counters (updates, environment steps, ...)."""
+    versions: dict[str, str]
+    """Library versions that wrote it."""
+
+
+def save_checkpoint(path: str | os.PathLike[str], kind: str, module: nn.Module, config: Any,
+                    optimisers: Mapping[str, torch.optim.Optimizer] | None = None,
+                    counters: Mapping[str, int] | None = None) -> Path:
+    """Atomically write ``module``'s weights, its ``config`` and optimiser states to ``path``."""
+    import twist_data
+
+    path = Path(path)
+    payload = {
+        "format": FORMAT, "version": VERSION, "kind": kind,
+        "config": json.dumps(to_json(config), sort_keys=True),
+        "weights": module.state_dict(),
+        "optimisers": {k: v.state_dict() for k, v in (optimisers or {}).items()},
+        "counters": {k: int(v) for k, v in (counters or {}).items()},
+        "versions": {"twist": str(twist_data.__version__), "torch": str(torch.__version__)},
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def read_checkpoint(path: str | os.PathLike[str], kind: str | None = None) -> Checkpoint:
+    """Read a checkpoint without unpickling code; ``kind`` requires that kind of model."""
+    path = Path(path)
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint {str(path)!r} does not exist") from None
+    except Exception as exc:  # torch raises assorted types for foreign or corrupt files
+        raise CheckpointError(f"{str(path)!r} is not a readable twist checkpoint: "
+                              f"{type(exc).__name__}") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{str(path)!r} is not a twist checkpoint")
+    if payload.get("version", 0) > VERSION:
+        raise CheckpointError(f"checkpoint {str(path)!r} has version {payload.get('version')}; "
+                              f"this library reads up to {VERSION}")
+    if kind is not None and payload["kind"] != kind:
+        raise CheckpointError(f"checkpoint {str(path)!r} holds a {payload['kind']}, "
+                              f"not a {kind}")
+    return Checkpoint(kind=payload["kind"], config=json.loads(payload["config"]),
+                      weights=payload["weights"], optimisers=payload["optimisers"],
+                      counters=payload["counters"], versions=payload["versions"])
+
+
+def config_differences(stored: Mapping[str, Any], expected: Mapping[str, Any],
+                       prefix: str = "") -> list[str]:
+    """``name: stored vs expected`` for every leaf where two config JSON trees differ."""
+    out = []
+    for key in sorted(set(stored) | set(expected)):
+        name = f"{prefix}{key}"
+        a, b = stored.get(key), expected.get(key)
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            out += config_differences(a, b, f"{name}.")
+        elif a != b:
+            out.append(f"{name} is {a!r} in the checkpoint but {b!r} here")
+    return out
+
+
+def restore(checkpoint: Checkpoint, module: nn.Module, config: Any,
+            optimisers: Mapping[str, torch.optim.Optimizer] | None = None) -> None:
+    """Load weights (and optimiser states) into a module built from ``config``; refuses with
+    every differing config value named when the checkpoint was written for another config."""
+    differences = config_differences(checkpoint.config, to_json(config))
+    if differences:
+        raise CheckpointMismatchError(f"{checkpoint.kind} checkpoint does not match the model: "
+                                      + "; ".join(differences))
+    module.load_state_dict(checkpoint.weights)
+    for name, optimiser in (optimisers or {}).items():
+        if name in checkpoint.optimisers:
+            optimiser.load_state_dict(checkpoint.optimisers[name])

@@ -1,0 +1,254 @@
+"""Typed, frozen configurations of the world models and the actor-critic, with named presets.
+
+Defaults follow DreamerV2's ``dmc`` settings (``danijar/dreamerv2``, ``configs.yaml``) and the
+TWIST paper (state encoder/decoder MLPs of 3 x 512 ELU). Every config is saved inside every
+checkpoint, and a checkpoint is only loaded into a model built from an equal config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+from twist_data.errors import ConfigError
+
+T = TypeVar("T")
+
+
+def _positive(obj: object, *names: str) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        if not value > 0:
+            raise ConfigError(f"{type(obj).__name__}.{name} must be > 0, got {value}")
+
+
+@dataclass(frozen=True)
+class RSSMConfig:
+    """Recurrent state-space model sizes and KL settings."""
+
+    deter: int = 200
+    """Size of the deterministic GRU state h_t."""
+    hidden: int = 200
+    """Width of the layers around the GRU and of the prior/posterior heads."""
+    stoch: int = 32
+    """Number of categorical latent variables in z_t."""
+    classes: int = 32
+    """Classes per categorical variable."""
+    kl_balance: float = 0.8
+    """Weight of the prior-side term in KL balancing (DreamerV2: 0.8)."""
+    free_nats: float = 1.0
+    """KL values below this are not penalised (applied to the batch mean, as DreamerV2)."""
+
+    def __post_init__(self) -> None:
+        _positive(self, "deter", "hidden", "stoch", "classes")
+        if not 0.0 <= self.kl_balance <= 1.0 or self.free_nats < 0:
+            raise ConfigError(f"kl_balance must be in [0, 1] and free_nats >= 0, got "
+                              f"{self.kl_balance} and {self.free_nats}")
+
+    @property
+    def feature_dim(self) -> int:
+        """Size of the model state feature [h_t, flatten(z_t)] the heads and actor read."""
+        return self.deter + self.stoch * self.classes
+
+
+@dataclass(frozen=True)
+class MLPConfig:
+    """A multilayer perceptron with ELU activations."""
+
+    layers: int = 4
+    """Number of hidden layers."""
+    units: int = 400
+    """Units per hidden layer."""
+
+    def __post_init__(self) -> None:
+        _positive(self, "layers", "units")
+
+
+@dataclass(frozen=True)
+class CNNConfig:
+    """DreamerV2's convolutional image encoder/decoder for 64x64x3 images."""
+
+    depth: int = 48
+    """Channels of the first convolution; doubled at every layer."""
+    encoder_kernels: tuple[int, ...] = (4, 4, 4, 4)
+    """Kernel sizes of the stride-2 valid convolutions (64 -> 31 -> 14 -> 6 -> 2)."""
+    decoder_kernels: tuple[int, ...] = (5, 5, 6, 6)
+    """Kernel sizes of the stride-2 transposed convolutions (1 -> 5 -> 13 -> 30 -> 64)."""
+    image_size: int = 64
+    """Side of the square input images."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "encoder_kernels", tuple(self.encoder_kernels))
+        object.__setattr__(self, "decoder_kernels", tuple(self.decoder_kernels))
+        _positive(self, "depth", "image_size")
+
+
+@dataclass(frozen=True)
+class ActorCriticConfig:
+    """Behaviour learning in imagination."""
+
+    horizon: int = 15
+    """Imagination horizon H."""
+    discount: float = 0.99
+    """gamma."""
+    lambda_: float = 0.95
+    """lambda of the lambda-returns."""
+    actor: MLPConfig = field(default_factory=MLPConfig)
+    """Actor network."""
+    critic: MLPConfig = field(default_factory=MLPConfig)
+    """Critic network."""
+    min_std: float = 0.1
+    """Minimum standard deviation of the truncated-normal actor."""
+    entropy: float = 1e-4
+    """Weight of the actor's entropy bonus."""
+    slow_target_every: int = 100
+    """Critic updates between copies of the critic into its slow target."""
+    actor_lr: float = 8e-5
+    """Adam learning rate of the actor."""
+    critic_lr: float = 8e-5
+    """Adam learning rate of the critic."""
+
+    def __post_init__(self) -> None:
+        _positive(self, "horizon", "slow_target_every", "actor_lr", "critic_lr", "min_std")
+        if not 0 < self.discount <= 1 or not 0 <= self.lambda_ <= 1:
+            raise ConfigError(f"discount must be in (0, 1] and lambda_ in [0, 1], got "
+                              f"{self.discount} and {self.lambda_}")
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """Adam settings shared by all optimisers (learning rates live with each model)."""
+
+    eps: float = 1e-5
+    """Adam epsilon."""
+    grad_clip: float = 100.0
+    """Global gradient-norm clip per optimiser."""
+    weight_decay: float = 1e-6
+    """Decoupled weight decay (AdamW), as DreamerV2."""
+
+    def __post_init__(self) -> None:
+        _positive(self, "eps", "grad_clip")
+
+
+@dataclass(frozen=True)
+class WorldModelConfig:
+    """A world model: encoder, RSSM, decoder and reward (and optional discount) heads."""
+
+    obs: str = "state"
+    """What the encoder reads: ``state`` (teacher) or ``image`` (student)."""
+    state_dim: int = 5
+    """Length of the privileged state vector (``state`` models)."""
+    action_dim: int = 1
+    """Length of the action vector."""
+    rssm: RSSMConfig = field(default_factory=RSSMConfig)
+    """RSSM sizes."""
+    state_mlp: MLPConfig = field(default_factory=lambda: MLPConfig(layers=3, units=512))
+    """State encoder and decoder MLPs (the paper's teacher: 3 x 512)."""
+    cnn: CNNConfig = field(default_factory=CNNConfig)
+    """Image encoder/decoder (``image`` models)."""
+    head: MLPConfig = field(default_factory=MLPConfig)
+    """Reward and discount heads."""
+    discount_head: bool = False
+    """Predict episode continuation (off for DMC, which never terminates)."""
+    model_lr: float = 3e-4
+    """Adam learning rate of the world model."""
+    kl_scale: float = 1.0
+    """Weight of the KL term in the world-model loss."""
+
+    def __post_init__(self) -> None:
+        if self.obs not in ("state", "image"):
+            raise ConfigError(f"obs must be 'state' or 'image', got {self.obs!r}")
+        _positive(self, "action_dim", "model_lr")
+        if self.obs == "state":
+            _positive(self, "state_dim")
+
+
+@dataclass(frozen=True)
+class TeacherConfig:
+    """The state teacher: a state world model plus actor-critic."""
+
+    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    """World model on privileged state."""
+    actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
+    """Behaviour learning."""
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    """Optimiser settings."""
+    explore_noise: float = 0.0
+    """Std of Gaussian noise added to sampled actions when acting with ``explore=True``
+    (DreamerV2 explores by sampling its stochastic actor; this adds more on top)."""
+
+    def __post_init__(self) -> None:
+        if self.world_model.obs != "state":
+            raise ConfigError(f"the teacher's world model reads state, got obs={self.world_model.obs!r}")
+        if self.explore_noise < 0:
+            raise ConfigError(f"explore_noise must be >= 0, got {self.explore_noise}")
+
+
+def _tiny_mlp() -> MLPConfig:
+    return MLPConfig(layers=2, units=32)
+
+
+#: Named size presets: ``paper`` is DreamerV2/TWIST; ``quick`` is a CPU-sized model for demos;
+#: ``tiny`` is for tests.
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {},
+    "quick": {"rssm": RSSMConfig(deter=128, hidden=128, stoch=16, classes=16),
+              "state_mlp": MLPConfig(layers=2, units=256), "head": MLPConfig(layers=2, units=256),
+              "cnn": CNNConfig(depth=24)},
+    "tiny": {"rssm": RSSMConfig(deter=32, hidden=32, stoch=4, classes=4),
+             "state_mlp": _tiny_mlp(), "head": _tiny_mlp(), "cnn": CNNConfig(depth=4)},
+}
+_AC_PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {},
+    "quick": {"actor": MLPConfig(layers=2, units=256), "critic": MLPConfig(layers=2, units=256)},
+    "tiny": {"actor": _tiny_mlp(), "critic": _tiny_mlp()},
+}
+
+
+def teacher_preset(name: str, state_dim: int, action_dim: int) -> TeacherConfig:
+    """The teacher config of preset ``name`` for a task's state and action sizes."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
+    world_model = WorldModelConfig(obs="state", state_dim=state_dim, action_dim=action_dim,
+                                   **PRESETS[name])
+    return TeacherConfig(world_model=world_model,
+                         actor_critic=ActorCriticConfig(**_AC_PRESETS[name]))
+
+
+def to_json(config: Any) -> dict[str, Any]:
+    """A config as plain JSON types."""
+    return json_safe(dataclasses.asdict(config))
+
+
+def json_safe(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def from_json(cls: type[T], data: Mapping[str, Any]) -> T:
+    """Rebuild a (nested) config dataclass from :func:`to_json` output; unknown keys are errors."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(f"unknown fields {unknown} for {cls.__name__}")
+    kwargs = {}
+    hints = _field_types(cls)
+    for name, value in data.items():
+        kind = hints[name]
+        if dataclasses.is_dataclass(kind) and isinstance(value, Mapping):
+            value = from_json(kind, value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    import typing
+
+    return typing.get_type_hints(cls)

@@ -1,0 +1,132 @@
+"""DreamerV2's recurrent state-space model with discrete latents.
+
+A model state is a dict of tensors with any leading shape [...]:
+``deter`` [..., D] the GRU state h_t, ``logits`` [..., S, C] of the distribution z_t was drawn
+from, and ``stoch`` [..., S, C] the one-hot sample z_t (straight-through gradients).
+Time convention (as the dataset): ``action[t]`` is the action that led to step t, so
+``obs_step(state[t-1], action[t], embed[t])`` gives state[t]; where ``is_first[t]`` the previous
+state and action are zeroed, which starts a new episode from the initial state.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from twist_models.config import RSSMConfig
+from twist_models.networks import LayerNormGRUCell
+
+State = dict[str, torch.Tensor]
+#: Maps a detached model feature [N, F] to an action [N, A].
+Policy = Callable[[torch.Tensor], torch.Tensor]
+
+
+def sample_one_hot(logits: torch.Tensor) -> torch.Tensor:
+    """Straight-through one-hot sample of categorical ``logits`` [..., C]: the forward value is
+    a one-hot sample, the gradient is that of the probabilities."""
+    probs = F.softmax(logits, -1)
+    index = torch.multinomial(probs.reshape(-1, probs.shape[-1]), 1).reshape(probs.shape[:-1])
+    sample = F.one_hot(index, probs.shape[-1]).to(probs.dtype)
+    return sample + probs - probs.detach()
+
+
+def stack_states(states: list[State], dim: int) -> State:
+    return {k: torch.stack([s[k] for s in states], dim) for k in states[0]}
+
+
+class RSSM(nn.Module):
+    """Prior p(z_t | h_t), posterior q(z_t | h_t, e_t), h_t = GRU(h_{t-1}, z_{t-1}, a_t)."""
+
+    def __init__(self, config: RSSMConfig, action_dim: int, embed_dim: int) -> None:
+        super().__init__()
+        self.config = config
+        c = config
+        latent = c.stoch * c.classes
+        self.img_in = nn.Sequential(nn.Linear(latent + action_dim, c.hidden), nn.ELU())
+        self.gru = LayerNormGRUCell(c.hidden, c.deter)
+        self.img_out = nn.Sequential(nn.Linear(c.deter, c.hidden), nn.ELU(),
+                                     nn.Linear(c.hidden, latent))
+        self.obs_out = nn.Sequential(nn.Linear(c.deter + embed_dim, c.hidden), nn.ELU(),
+                                     nn.Linear(c.hidden, latent))
+        self.action_dim = action_dim
+
+    # -- states -----------------------------------------------------------------------------
+    def initial(self, batch_shape: tuple[int, ...] | int, device: torch.device | None = None) -> State:
+        """The all-zeros state every episode starts from."""
+        shape = (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
+        c = self.config
+        device = device or self.img_in[0].weight.device
+        zeros = torch.zeros(*shape, c.stoch, c.classes, device=device)
+        return {"deter": torch.zeros(*shape, c.deter, device=device), "logits": zeros,
+                "stoch": zeros.clone()}
+
+    def feature(self, state: State) -> torch.Tensor:
+        """[..., D + S*C]: the input of decoders, heads and the actor."""
+        return torch.cat([state["deter"], state["stoch"].flatten(-2)], -1)
+
+    def _logits(self, raw: torch.Tensor) -> torch.Tensor:
+        return raw.unflatten(-1, (self.config.stoch, self.config.classes))
+
+    # -- one step ---------------------------------------------------------------------------
+    def img_step(self, prev: State, action: torch.Tensor, sample: bool = True) -> State:
+        """Prior state after taking ``action`` [..., A] in ``prev``."""
+        x = self.img_in(torch.cat([prev["stoch"].flatten(-2), action], -1))
+        deter = self.gru(x, prev["deter"])
+        logits = self._logits(self.img_out(deter))
+        stoch = sample_one_hot(logits) if sample else _mode(logits)
+        return {"deter": deter, "logits": logits, "stoch": stoch}
+
+    def obs_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
+                 is_first: torch.Tensor | None = None) -> tuple[State, State]:
+        """(posterior, prior) at a step with observation embedding ``embed`` [..., E]."""
+        if is_first is not None:
+            keep = (~is_first.bool()).to(action.dtype)
+            prev = {k: v * keep.reshape(*keep.shape, *([1] * (v.dim() - keep.dim())))
+                    for k, v in prev.items()}
+            action = action * keep.unsqueeze(-1)
+        prior = self.img_step(prev, action)
+        logits = self._logits(self.obs_out(torch.cat([prior["deter"], embed], -1)))
+        post = {"deter": prior["deter"], "logits": logits, "stoch": sample_one_hot(logits)}
+        return post, prior
+
+    # -- sequences --------------------------------------------------------------------------
+    def observe(self, embed: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
+                state: State | None = None) -> tuple[State, State]:
+        """Filter a sequence: embed [B, T, E], action [B, T, A], is_first [B, T] ->
+        (posterior, prior), each {k: [B, T, ...]}. ``state`` continues a previous call."""
+        b, t = embed.shape[:2]
+        state = state if state is not None else self.initial(b, embed.device)
+        posts, priors = [], []
+        for i in range(t):
+            state, prior = self.obs_step(state, action[:, i], embed[:, i], is_first[:, i])
+            posts.append(state)
+            priors.append(prior)
+        return stack_states(posts, 1), stack_states(priors, 1)
+
+    def imagine(self, start: State, horizon: int, policy: Policy | None = None,
+                actions: torch.Tensor | None = None) -> tuple[State, torch.Tensor]:
+        """Roll the prior forward from ``start`` ({k: [N, ...]}) for ``horizon`` steps.
+
+        Actions come from ``policy(feature.detach())`` or from ``actions`` [N, H, A] (the
+        student replaying the teacher's actions). Returns (states {k: [N, H+1, ...]} with
+        ``start`` first, actions [N, H, A]) where action i was taken in state i.
+        """
+        if (policy is None) == (actions is None):
+            raise ValueError("imagine needs exactly one of policy and actions")
+        if actions is not None and actions.shape[1] != horizon:
+            raise ValueError(f"actions cover {actions.shape[1]} steps, horizon is {horizon}")
+        states, taken = [start], []
+        state = start
+        for i in range(horizon):
+            action = policy(self.feature(state).detach()) if policy is not None else actions[:, i]
+            state = self.img_step(state, action)
+            states.append(state)
+            taken.append(action)
+        return stack_states(states, 1), torch.stack(taken, 1)
+
+
+def _mode(logits: torch.Tensor) -> torch.Tensor:
+    return F.one_hot(logits.argmax(-1), logits.shape[-1]).to(logits.dtype)

@@ -1,0 +1,105 @@
+"""The TWIST teacher: a DreamerV2 agent whose world model sees privileged state.
+
+Library level only: no environment code. The collector feeds :meth:`Teacher.train_step` with
+window batches from the matching dataset and acts with :meth:`Teacher.policy`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from twist_data.errors import CheckpointMismatchError
+from twist_models.actor_critic import ActorCritic
+from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
+from twist_models.config import TeacherConfig, from_json
+from twist_models.rssm import State
+from twist_models.world_model import WorldModel
+
+
+class Teacher(nn.Module):
+    """World model on state + actor-critic in imagination."""
+
+    def __init__(self, config: TeacherConfig) -> None:
+        super().__init__()
+        self.config = config
+        wm = config.world_model
+        self.world_model = WorldModel(wm)
+        self.actor_critic = ActorCritic(wm.rssm.feature_dim, wm.action_dim, config.actor_critic,
+                                        config.optim)
+        self.model_opt = torch.optim.AdamW(self.world_model.parameters(), wm.model_lr,
+                                           eps=config.optim.eps,
+                                           weight_decay=config.optim.weight_decay)
+        self.register_buffer("step", torch.zeros((), dtype=torch.int64))
+
+    def optimisers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"model": self.model_opt, "actor": self.actor_critic.actor_opt,
+                "critic": self.actor_critic.critic_opt}
+
+    def train_step(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        """Update the world model on ``batch`` ({k: [B, T, ...]}: state, action, reward,
+        is_first, ...), then the actor-critic from imagination started at every posterior
+        state. Returns scalar metrics."""
+        loss, post, metrics = self.world_model.loss(batch)
+        self.model_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        metrics["model_grad_norm"] = nn.utils.clip_grad_norm_(self.world_model.parameters(),
+                                                              self.config.optim.grad_clip)
+        self.model_opt.step()
+        start = {k: v.detach().flatten(0, 1) for k, v in post.items()}
+        metrics.update(self.actor_critic.train_step(self.world_model, start))
+        self.step += 1
+        return {k: float(v) for k, v in metrics.items()}
+
+    @torch.no_grad()
+    def policy(self, state: torch.Tensor, latent: State | None, prev_action: torch.Tensor,
+               is_first: torch.Tensor, explore: bool = True) -> tuple[torch.Tensor, State]:
+        """Act on privileged ``state`` [N, S] given the previous latent (None at the start),
+        previous action [N, A] and is_first [N]. Returns (action [N, A] in [-1, 1], latent).
+
+        ``explore`` samples the actor (plus ``explore_noise``); otherwise the actor's mode.
+        """
+        rssm = self.world_model.rssm
+        if latent is None:
+            latent = rssm.initial(state.shape[0], state.device)
+        latent, _ = rssm.obs_step(latent, prev_action, self.world_model.embed(state), is_first)
+        dist = self.actor_critic.actor(rssm.feature(latent))
+        if explore:
+            action = dist.rsample()
+            if self.config.explore_noise:
+                action = action + self.config.explore_noise * torch.randn_like(action)
+        else:
+            action = dist.mode
+        return action.clamp(-1.0, 1.0), latent
+
+    def act_on_latent(self, latent: State, explore: bool = False) -> torch.Tensor:
+        """The teacher's actor on any model state with the teacher's sizes (e.g. the student's)."""
+        dist = self.actor_critic.actor(self.world_model.rssm.feature(latent))
+        return (dist.rsample() if explore else dist.mode).clamp(-1.0, 1.0)
+
+
+def save_teacher(path: str | os.PathLike[str], teacher: Teacher,
+                 counters: dict[str, int] | None = None) -> Path:
+    """Checkpoint a teacher with its optimisers and update count."""
+    return save_checkpoint(path, "teacher", teacher, teacher.config, teacher.optimisers(),
+                           {"updates": int(teacher.step), **(counters or {})})
+
+
+def load_teacher(path: str | os.PathLike[str], state_dim: int | None = None,
+                 action_dim: int | None = None) -> tuple[Teacher, Checkpoint]:
+    """Rebuild a teacher from its checkpoint; ``state_dim``/``action_dim`` (e.g. a dataset's)
+    must match the checkpoint's, else the error names both values."""
+    checkpoint = read_checkpoint(path, kind="teacher")
+    config = from_json(TeacherConfig, checkpoint.config)
+    wm = config.world_model
+    for name, wanted in (("state_dim", state_dim), ("action_dim", action_dim)):
+        have = getattr(wm, name)
+        if wanted is not None and wanted != have:
+            raise CheckpointMismatchError(f"teacher checkpoint {str(path)!r} has {name} {have}, "
+                                          f"but the data has {name} {wanted}")
+    teacher = Teacher(config)
+    restore(checkpoint, teacher, config, teacher.optimisers())
+    return teacher, checkpoint

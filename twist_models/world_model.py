@@ -1,0 +1,79 @@
+"""World model = encoder + RSSM + decoder + reward (and optional discount) head."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from twist_models.config import WorldModelConfig
+from twist_models.losses import gaussian_nll, kl_balance_loss
+from twist_models.networks import MLP, ImageDecoder, ImageEncoder, StateEncoder, preprocess_image
+from twist_models.rssm import RSSM, State
+
+
+class WorldModel(nn.Module):
+    """DreamerV2's world model on privileged state (teacher) or 64x64 images (student).
+
+    Batches are dicts of [B, T, ...] tensors in the dataset's time convention: ``state`` [S]
+    or ``image`` [H, W, 3] uint8, ``action`` [A] (the action that led to step t), ``reward``,
+    ``is_first``, and ``is_terminal`` when the discount head is on.
+    """
+
+    def __init__(self, config: WorldModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        c = config
+        if c.obs == "state":
+            self.encoder: nn.Module = StateEncoder(c.state_dim, c.state_mlp)
+        else:
+            self.encoder = ImageEncoder(c.cnn)
+        self.rssm = RSSM(c.rssm, c.action_dim, self.encoder.out_dim)
+        feature = c.rssm.feature_dim
+        if c.obs == "state":
+            self.decoder: nn.Module = MLP(feature, c.state_dim, c.state_mlp)
+        else:
+            self.decoder = ImageDecoder(feature, c.cnn)
+        self.reward_head = MLP(feature, 1, c.head)
+        self.discount_head = MLP(feature, 1, c.head) if c.discount_head else None
+
+    @property
+    def obs_key(self) -> str:
+        return self.config.obs
+
+    def embed(self, observation: torch.Tensor) -> torch.Tensor:
+        return self.encoder(observation)
+
+    def loss(self, batch: dict[str, torch.Tensor],
+             state: State | None = None) -> tuple[torch.Tensor, State, dict[str, torch.Tensor]]:
+        """World-model loss of a batch -> (scalar loss, posterior states [B, T, ...], metrics)."""
+        c = self.config
+        obs = batch[self.obs_key]
+        post, prior = self.rssm.observe(self.embed(obs), batch["action"], batch["is_first"], state)
+        feature = self.rssm.feature(post)
+        kl_loss, kl = kl_balance_loss(post["logits"], prior["logits"], c.rssm.kl_balance,
+                                      c.rssm.free_nats)
+        if c.obs == "state":
+            recon = gaussian_nll(self.decoder(feature), obs).mean()
+        else:
+            recon = gaussian_nll(self.decoder(feature), preprocess_image(obs), 3).mean()
+        reward = gaussian_nll(self.reward_head(feature).squeeze(-1), batch["reward"], 0).mean()
+        loss = c.kl_scale * kl_loss + recon + reward
+        metrics = {"kl": kl, "recon_loss": recon.detach(), "reward_loss": reward.detach()}
+        if self.discount_head is not None:
+            continues = (~batch["is_terminal"].bool()).float()
+            discount = nn.functional.binary_cross_entropy_with_logits(
+                self.discount_head(feature).squeeze(-1), continues)
+            loss = loss + discount
+            metrics["discount_loss"] = discount.detach()
+        metrics["model_loss"] = loss.detach()
+        return loss, post, metrics
+
+    def reward(self, feature: torch.Tensor) -> torch.Tensor:
+        """Predicted reward for arriving in the state of ``feature``: [..., F] -> [...]."""
+        return self.reward_head(feature).squeeze(-1)
+
+    def continuation(self, feature: torch.Tensor) -> torch.Tensor:
+        """Probability the episode continues after this state ([...]); 1 without the head."""
+        if self.discount_head is None:
+            return torch.ones(feature.shape[:-1], device=feature.device)
+        return torch.sigmoid(self.discount_head(feature).squeeze(-1))
