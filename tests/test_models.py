@@ -1,0 +1,200 @@
+"""World models on tiny sizes, checked against independent computations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from twist_data.errors import CheckpointError, CheckpointMismatchError
+from twist_models.config import CNNConfig, WorldModelConfig, teacher_preset
+from twist_models.losses import categorical_kl, kl_balance_loss, lambda_returns
+from twist_models.networks import ImageDecoder, ImageEncoder
+from twist_models.rssm import sample_one_hot
+from twist_models.teacher import Teacher, load_teacher, save_teacher
+from twist_models.world_model import WorldModel
+
+
+def _batch(b: int = 3, t: int = 6, s: int = 5, a: int = 2) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(0)
+    is_first = torch.zeros(b, t, dtype=torch.bool)
+    is_first[:, 0] = True
+    return {"state": torch.randn(b, t, s, generator=g), "action": torch.rand(b, t, a, generator=g),
+            "reward": torch.rand(b, t, generator=g), "is_first": is_first}
+
+
+def test_image_cnn_shapes_match_dreamerv2() -> None:
+    encoder = ImageEncoder(CNNConfig())
+    assert encoder.out_dim == 1536  # 64 -> 31 -> 14 -> 6 -> 2, 384 channels
+    image = torch.randint(0, 256, (2, 3, 64, 64, 3), dtype=torch.uint8)
+    assert encoder(image).shape == (2, 3, 1536)
+    decoder = ImageDecoder(1224, CNNConfig())
+    assert decoder(torch.zeros(2, 3, 1224)).shape == (2, 3, 64, 64, 3)
+
+
+def test_rssm_shapes_with_extra_leading_dims() -> None:
+    wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
+    rssm, c = wm.rssm, wm.config.rssm
+    prev = rssm.initial((4, 3))
+    post, prior = rssm.obs_step(prev, torch.zeros(4, 3, 2), torch.zeros(4, 3, wm.encoder.out_dim))
+    assert post["stoch"].shape == prior["logits"].shape == (4, 3, c.stoch, c.classes)
+    assert rssm.feature(post).shape == (4, 3, c.deter + c.stoch * c.classes)
+    stoch = post["stoch"].detach()  # one-hot per variable (up to the straight-through rounding)
+    assert torch.allclose(stoch.sum(-1), torch.ones(4, 3, c.stoch))
+    assert torch.allclose(stoch.max(-1).values, torch.ones(4, 3, c.stoch))
+    loss, states, _ = wm.loss(_batch())
+    assert loss.shape == () and states["deter"].shape == (3, 6, c.deter)
+
+
+def test_straight_through_gradients_flow() -> None:
+    logits = torch.randn(5, 4, 3, requires_grad=True)
+    sample = sample_one_hot(logits)
+    assert torch.allclose(sample.detach().sum(-1), torch.ones(5, 4))
+    weights = torch.randn(5, 4, 3)
+    (sample * weights).sum().backward()
+    probs = torch.softmax(logits.detach(), -1)
+    expected = probs * (weights - (probs * weights).sum(-1, keepdim=True))  # d(p . w)/dlogits
+    torch.testing.assert_close(logits.grad, expected)
+
+
+def test_kl_balancing_equals_a_hand_computation() -> None:
+    rng = np.random.default_rng(0)
+    post_np, prior_np = rng.normal(size=(7, 3, 4)), rng.normal(size=(7, 3, 4))
+
+    def kl(p_logits: np.ndarray, q_logits: np.ndarray) -> np.ndarray:
+        p = np.exp(p_logits) / np.exp(p_logits).sum(-1, keepdims=True)
+        q = np.exp(q_logits) / np.exp(q_logits).sum(-1, keepdims=True)
+        return (p * np.log(p / q)).sum((-2, -1))
+
+    value = kl(post_np, prior_np).mean()
+    post = torch.tensor(post_np, requires_grad=True)
+    prior = torch.tensor(prior_np, requires_grad=True)
+    torch.testing.assert_close(categorical_kl(post, prior).mean().item(), value)
+    for free in (0.0, value + 1.0):
+        loss, logged = kl_balance_loss(post, prior, balance=0.8, free_nats=free)
+        assert loss.item() == pytest.approx(max(value, free))
+        assert logged.item() == pytest.approx(value)
+    # The gradient split: 0.8 of the KL gradient reaches the prior, 0.2 the posterior.
+    loss, _ = kl_balance_loss(post, prior, balance=0.8, free_nats=0.0)
+    loss.backward()
+    full_post, full_prior = (torch.tensor(post_np, requires_grad=True),
+                             torch.tensor(prior_np, requires_grad=True))
+    categorical_kl(full_post, full_prior).mean().backward()
+    torch.testing.assert_close(post.grad, 0.2 * full_post.grad)
+    torch.testing.assert_close(prior.grad, 0.8 * full_prior.grad)
+    # Below free nats nothing is trained.
+    post.grad = prior.grad = None
+    kl_balance_loss(post, prior, 0.8, free_nats=value + 1.0)[0].backward()
+    assert post.grad is None or torch.all(post.grad == 0)
+
+
+def test_lambda_returns_match_a_numpy_recursion() -> None:
+    rng = np.random.default_rng(1)
+    t, n, lam = 9, 4, 0.95
+    reward, value = rng.normal(size=(t, n)), rng.normal(size=(t, n))
+    pcont, bootstrap = rng.uniform(0.8, 1.0, (t, n)), rng.normal(size=n)
+    expected = np.zeros((t, n))
+    for i in range(n):
+        nxt_g, nxt_v = bootstrap[i], bootstrap[i]
+        for k in reversed(range(t)):
+            # G_t = r_t + gamma_t ((1 - lam) V_{t+1} + lam G_{t+1}), V_T = G_T = bootstrap.
+            nxt_v = value[k + 1, i] if k + 1 < t else bootstrap[i]
+            nxt_g = reward[k, i] + pcont[k, i] * ((1 - lam) * nxt_v + lam * nxt_g)
+            expected[k, i] = nxt_g
+    got = lambda_returns(*(torch.tensor(x) for x in (reward, value, pcont, bootstrap)), lam)
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-10)
+    # lambda = 0 is one-step TD; lambda = 1 is the discounted Monte-Carlo return + bootstrap.
+    td = lambda_returns(*(torch.tensor(x) for x in (reward, value, pcont, bootstrap)), 0.0)
+    next_v = np.concatenate([value[1:], bootstrap[None]])
+    np.testing.assert_allclose(td.numpy(), reward + pcont * next_v, rtol=1e-10)
+
+
+def test_observe_resets_the_state_where_is_first() -> None:
+    torch.manual_seed(0)
+    wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
+    batch = _batch(b=2, t=8)
+    batch["is_first"][0, 4] = True  # a new episode starts mid-window in row 0
+    torch.manual_seed(1)
+    post, _ = wm.rssm.observe(wm.embed(batch["state"]), batch["action"], batch["is_first"])
+    torch.manual_seed(2)
+    tail = {k: v[:, 4:] for k, v in batch.items()}
+    alone, _ = wm.rssm.observe(wm.embed(tail["state"]), tail["action"], tail["is_first"])
+    # The deterministic path after a reset ignores everything before it.
+    torch.testing.assert_close(post["deter"][0, 4], alone["deter"][0, 0])
+    assert not torch.allclose(post["deter"][1, 4], alone["deter"][1, 0])  # no reset in row 1
+
+
+def test_imagine_with_given_actions_is_deterministic_given_the_noise() -> None:
+    wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
+    start = wm.rssm.initial(6)
+    actions = torch.rand(6, 5, 2) * 2 - 1
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(7)
+        states, taken = wm.rssm.imagine(start, 5, actions=actions)
+        runs.append(states)
+    assert torch.equal(taken, actions) and states["deter"].shape == (6, 6, 32)
+    for key in runs[0]:
+        assert torch.equal(runs[0][key], runs[1][key])
+    torch.manual_seed(8)
+    other, _ = wm.rssm.imagine(start, 5, actions=actions)
+    assert not torch.equal(other["stoch"], runs[0]["stoch"])
+
+
+def test_tiny_world_model_overfits_a_toy_sequence() -> None:
+    torch.manual_seed(0)
+    t = torch.arange(20, dtype=torch.float32)
+    state = torch.stack([torch.sin(t / 3), torch.cos(t / 3), torch.sin(t / 5)], -1)[None]
+    batch = {"state": state, "action": torch.zeros(1, 20, 1), "reward": state[..., 0].clone(),
+             "is_first": torch.arange(20)[None] == 0}
+    wm = WorldModel(WorldModelConfig(state_dim=3, action_dim=1,
+                                     **{k: v for k, v in teacher_preset("tiny", 3, 1)
+                                        .world_model.__dict__.items()
+                                        if k in ("rssm", "state_mlp", "head")}))
+    opt = torch.optim.Adam(wm.parameters(), 3e-3)
+    first = None
+    for _ in range(300):
+        loss, _, metrics = wm.loss(batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        first = first if first is not None else metrics["recon_loss"].item()
+    floor = 0.5 * np.log(2 * np.pi) * 3  # NLL of a perfect unit-variance prediction
+    assert metrics["recon_loss"].item() - floor < 0.05 < first - floor
+    assert metrics["reward_loss"].item() - 0.5 * np.log(2 * np.pi) < 0.02
+
+
+def test_checkpoint_round_trip_is_bit_exact(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    teacher = Teacher(teacher_preset("tiny", 5, 2))
+    teacher.train_step(_batch())
+    path = save_teacher(tmp_path / "teacher.ckpt", teacher, {"env_steps": 1234})
+    loaded, checkpoint = load_teacher(path, state_dim=5, action_dim=2)
+    assert checkpoint.counters == {"updates": 1, "env_steps": 1234}
+    feature = torch.randn(4, teacher.config.world_model.rssm.feature_dim)
+    assert torch.equal(teacher.actor_critic.actor(feature).mean, loaded.actor_critic.actor(feature).mean)
+    for (name, a), (_, b) in zip(teacher.state_dict().items(), loaded.state_dict().items(),
+                                 strict=True):
+        assert torch.equal(a, b), name
+    # Optimiser moments came back too: one more identical step stays identical.
+    batch = _batch()
+    torch.manual_seed(3)
+    teacher.train_step(batch)
+    torch.manual_seed(3)
+    loaded.train_step(batch)
+    for a, b in zip(teacher.parameters(), loaded.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_mismatched_or_foreign_checkpoints_are_refused(tmp_path: Path) -> None:
+    path = save_teacher(tmp_path / "t.ckpt", Teacher(teacher_preset("tiny", 5, 2)))
+    with pytest.raises(CheckpointMismatchError, match="state_dim 5, but the data has state_dim 17"):
+        load_teacher(path, state_dim=17)
+    foreign = tmp_path / "evil.ckpt"
+    torch.save({"format": "twist.checkpoint", "obj": Path("x")}, foreign)  # needs unpickling
+    with pytest.raises(CheckpointError, match="not a readable twist checkpoint"):
+        load_teacher(foreign)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_teacher(tmp_path / "missing.ckpt")
