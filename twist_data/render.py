@@ -36,7 +36,7 @@ import numpy as np
 from twist_data.backgrounds import BackgroundBank, directory_bank, procedural_bank
 from twist_data.errors import ConfigError, RenderUnavailableError
 from twist_data.randomisation import COLOUR_GROUPS, VIEW_PARAMS, DRConfig, DRSampler
-from twist_data.tasks import TaskSpec, load_suite_env, restore_physics, task_spec
+from twist_data.tasks import TaskSpec, load_suite_env, model_rows, restore_physics, task_spec
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +103,7 @@ class DRRenderer:
         m.vis.global_.offwidth = self._cols * side
         m.vis.global_.offheight = self._rows * side
         self.data = mujoco.MjData(m)
+        self._task_rows = model_rows(m, self.spec)
         self._groups = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_MATERIAL, g) for g in COLOUR_GROUPS]
         self.nominal_colours = np.array(
             [m.mat_rgba[g, :3] if g >= 0 else (0.5, 0.5, 0.5) for g in self._groups], np.float32)
@@ -137,13 +138,15 @@ class DRRenderer:
         return DRSampler(self.config, self.nominal_colours, self.views,
                          len(self.bank) if self.bank is not None else 0, self.max_offset, seed)
 
-    def provenance(self) -> dict[str, Any]:
-        """What a dataset must record to reproduce these renders (``spec.extra['dr']``)."""
+    def provenance(self, first_view: int = 0) -> dict[str, Any]:
+        """The render block a dataset records (``spec.extra['render']``) to reproduce these
+        renders when they occupy views ``first_view`` .. ``first_view + K``."""
         bank = None
         if self.bank is not None:
             bank = {"source": self.bank.source, "count": len(self.bank), "size": self.bank.size,
                     "sha256": self.bank.digest(), "names": list(self.bank.names)}
-        return {"config": self.config.to_json(), "image_size": self.image_size,
+        return {"views": [first_view, first_view + self.views],
+                "config": self.config.to_json(), "image_size": self.image_size,
                 "supersample": self.supersample, "camera": self.spec.camera,
                 "slices": RENDER_SLICES, "stacks": RENDER_STACKS, "bank": bank}
 
@@ -154,7 +157,7 @@ class DRRenderer:
         mj, m, side = self._mj, self.model, self._side
         k = self.views
         params = self._check_params(params)
-        restore_physics(m, self.data, physics, self.spec)
+        restore_physics(m, self.data, physics, self._task_rows, self.spec.name)
         self._gl.make_current()
         for v in range(k):
             for row, group in enumerate(self._groups):
@@ -176,14 +179,14 @@ class DRRenderer:
         rgb, depth = self._rgb[::-1], self._depth[::-1]  # OpenGL rows run bottom-up
         for v in range(k):
             r, c = divmod(v, self._cols)
-            view = rgb[r * side:(r + 1) * side, c * side:(c + 1) * side]
+            tile = (slice(r * side, (r + 1) * side), slice(c * side, (c + 1) * side))
+            # Composite in the readback buffer itself: it is rewritten by every render.
+            view = rgb[tile]
             background = int(params["background"][v])
             if background >= 0:
-                view = view.copy()
-                mask = depth[r * side:(r + 1) * side, c * side:(c + 1) * side] >= 1.0
+                mask = depth[tile] >= 1.0
                 y, x = (int(o) for o in params["background_offset"][v])
-                crop = self.bank.textures[background, y:y + side, x:x + side]
-                view[mask] = crop[mask]
+                view[mask] = self.bank.textures[background, y:y + side, x:x + side][mask]
             if self.supersample > 1:
                 out[v] = cv2.resize(view, (self.image_size, self.image_size),
                                     interpolation=cv2.INTER_AREA)

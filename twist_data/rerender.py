@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from twist_data.errors import ConfigError, SchemaMismatchError
-from twist_data.randomisation import VIEW_PARAMS, DRConfig
+from twist_data.randomisation import VIEW_PARAMS, DRConfig, derived_seed, stack_view_params
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.render import DRRenderer
 from twist_data.rollout import library_versions
@@ -111,7 +111,7 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
         raise ConfigError(f"output folder {str(out)!r} exists and is not empty")
     kept = spec.views if add_views else 0
     with DRRenderer(spec.task, config, size, views, supersample) as renderer:
-        new_block = {"views": [kept, kept + views], **renderer.provenance()}
+        new_block = renderer.provenance(first_view=kept)
         new_spec = dataclasses.replace(
             spec, views=kept + views, image_height=size, image_width=size,
             extra={**spec.extra, "render": [*blocks, new_block], "versions": library_versions(),
@@ -126,8 +126,7 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
                 if name not in writers:
                     writers[name] = ShardWriter.create(out, name, new_spec, layout)
                 episode, info = src.episode(index), src.episode_info(index)
-                new = _render_episode(renderer, sampler, episode, seed=int(
-                    np.random.SeedSequence([seed, index]).generate_state(1)[0]))
+                new = _render_episode(renderer, sampler, episode, derived_seed(seed, index))
                 if add_views:
                     new = _concat_views(episode, new)
                 writers[name].append(new, info)
@@ -148,8 +147,7 @@ def _render_episode(renderer: DRRenderer, sampler: Any, episode: Episode, seed: 
     for i in range(t):
         params.append(sampler.sample())
         renderer.render(episode.physics[i], params[-1], out=images[i])
-    dr = {p.name: np.stack([v[p.name] for v in params]) for p in VIEW_PARAMS}
-    return dataclasses.replace(episode, image=images, dr=dr)
+    return dataclasses.replace(episode, image=images, dr=stack_view_params(params))
 
 
 def _concat_views(old: Episode, new: Episode) -> Episode:

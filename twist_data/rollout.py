@@ -20,7 +20,9 @@ from twist_data.randomisation import (
     VIEW_PARAMS,
     DRConfig,
     DRSampler,
+    derived_seed,
     dynamics_params,
+    stack_view_params,
 )
 from twist_data.render import DRRenderer
 from twist_data.schema import DatasetSpec, Episode, EpisodeInfo
@@ -56,13 +58,12 @@ def library_versions() -> dict[str, str]:
 
 def simulated_spec(env: TaskEnv, renderer: DRRenderer, extra: dict[str, Any] | None = None) -> DatasetSpec:
     """The dataset spec of episodes recorded from ``env`` through ``renderer``."""
-    provenance = {"views": [0, renderer.views], **renderer.provenance()}
     return DatasetSpec(
         views=renderer.views, image_height=renderer.image_size, image_width=renderer.image_size,
         state_dim=env.state_dim, action_dim=env.action_dim, physics_dim=env.physics_dim,
         task=env.name, action_repeat=env.action_repeat, dr_params=VIEW_PARAMS,
         episode_dr_params=EPISODE_PARAMS, state_layout=env.state_layout,
-        extra={"render": [provenance], "physics_layout": [list(f) for f in env.physics_layout],
+        extra={"render": [renderer.provenance()], "physics_layout": [list(f) for f in env.physics_layout],
                "versions": library_versions(), **(extra or {})},
     )
 
@@ -97,7 +98,7 @@ def record_episode(env: TaskEnv, renderer: DRRenderer, sampler: DRSampler, polic
         is_first=np.array([s.is_first for s in steps]),
         is_last=np.array([s.is_last for s in steps]),
         is_terminal=np.array([s.is_terminal for s in steps]),
-        dr={p.name: np.stack([v[p.name] for v in params]) for p in VIEW_PARAMS},
+        dr=stack_view_params(params),
     )
     info = EpisodeInfo(seed=seed, policy=policy_name, teacher_step=teacher_step, env_step=env_step,
                        dr=dynamics_params(dynamics))
@@ -121,7 +122,7 @@ def record_dataset(out: str | os.PathLike[str], task: str, episodes: int, config
         with ShardWriter.create(out, shard, simulated_spec(env, renderer)) as writer:
             frames = 0
             for i in range(episodes):
-                episode_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+                episode_seed = derived_seed(seed, i)
                 episode, info = record_episode(env, renderer, sampler,
                                                random_policy(env.action_dim, episode_seed),
                                                seed=episode_seed, env_step=frames)

@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from twist_data.randomisation import derived_seed
 from twist_data.schema import DatasetSpec, Episode, EpisodeInfo, ParamSpec
 from twist_data.storage import StorageLayout
 from twist_data.writer import ShardWriter
@@ -151,7 +152,7 @@ def synth_episode(spec: DatasetSpec, seed: int, length: int,
 
 def episode_seed(config: SynthConfig, index: int) -> int:
     """Seed of global synthetic episode ``index`` under ``config``."""
-    return int(np.random.SeedSequence([config.seed, index]).generate_state(1)[0])
+    return derived_seed(config.seed, index)
 
 
 def episode_length(config: SynthConfig, index: int) -> int:

@@ -146,6 +146,7 @@ class TaskEnv:
         import mujoco
 
         self._core_dim = mujoco.mj_stateSize(self.model, _full_physics())
+        self._rows = model_rows(self.model, self.spec)
         self._done = True
 
     # -- sizes -------------------------------------------------------------------------------
@@ -163,7 +164,7 @@ class TaskEnv:
 
     @property
     def physics_dim(self) -> int:
-        return self._core_dim + sum(len(v) for v in self._model_values())
+        return self._core_dim + sum(row.size for row in self._rows)
 
     @property
     def physics_layout(self) -> tuple[tuple[str, int], ...]:
@@ -175,12 +176,9 @@ class TaskEnv:
         known = sum(s for _, s in core)
         if known != self._core_dim:  # plugin state or other fields of newer MuJoCo versions
             core = (*core, ("other", self._core_dim - known))
-        extra = tuple((f"{f}[{e}]", len(v)) for (f, e), v in
-                      zip(self.spec.model_fields, self._model_values(), strict=True))
+        extra = tuple((f"{f}[{e}]", row.size) for (f, e), row in
+                      zip(self.spec.model_fields, self._rows, strict=True))
         return core + extra
-
-    def _model_values(self) -> list[np.ndarray]:
-        return [_model_row(self.model, f, e) for f, e in self.spec.model_fields]
 
     # -- stepping ----------------------------------------------------------------------------
     def reset(self, seed: int | None = None, dynamics: Dynamics | None = None) -> Step:
@@ -233,11 +231,11 @@ class TaskEnv:
     # -- physics state -----------------------------------------------------------------------
     def physics_state(self) -> np.ndarray:
         """[P] float64: MuJoCo full physics state plus the task's per-episode model entries."""
-        return physics_vector(self.model, self.data, self._model_values())
+        return physics_vector(self.model, self.data, self._rows)
 
     def set_physics_state(self, physics: np.ndarray) -> None:
         """Restore an instant recorded by :meth:`physics_state` (kinematics recomputed)."""
-        restore_physics(self.model, self.data, physics, self.spec)
+        restore_physics(self.model, self.data, physics, self._rows, self.spec.name)
 
 
 def physics_vector(model, data, model_values: list[np.ndarray]) -> np.ndarray:
@@ -250,35 +248,36 @@ def physics_vector(model, data, model_values: list[np.ndarray]) -> np.ndarray:
     return np.concatenate([core, *[np.asarray(v, np.float64).ravel() for v in model_values]])
 
 
-def restore_physics(model, data, physics: np.ndarray, spec: TaskSpec) -> None:
-    """Write a physics vector into ``model``/``data`` and recompute positions (``mj_forward``)."""
+def restore_physics(model, data, physics: np.ndarray, rows: list[np.ndarray], task: str) -> None:
+    """Write a physics vector into ``model``/``data`` (and the task's model ``rows``, from
+    :func:`model_rows`) and recompute positions (``mj_forward``)."""
     import mujoco
 
     sig = _full_physics()
     core = mujoco.mj_stateSize(model, sig)
     physics = np.asarray(physics, np.float64)
-    fields = [(f, e, _model_row(model, f, e)) for f, e in spec.model_fields]
-    expected = core + sum(row.size for *_, row in fields)
+    expected = core + sum(row.size for row in rows)
     if physics.ndim != 1 or physics.shape[0] != expected:
         raise PhysicsStateError(
-            f"physics state for task {spec.name!r} must be a vector of length {expected}, "
+            f"physics state for task {task!r} must be a vector of length {expected}, "
             f"got shape {physics.shape}"
         )
     if not np.all(np.isfinite(physics)):
-        raise PhysicsStateError(f"physics state for task {spec.name!r} has non-finite values")
+        raise PhysicsStateError(f"physics state for task {task!r} has non-finite values")
     mujoco.mj_setState(model, data, physics[:core], sig)
     offset = core
-    for _, _, row in fields:
+    for row in rows:
         row[:] = physics[offset:offset + row.size]
         offset += row.size
     mujoco.mj_forward(model, data)
 
 
-def _model_row(model, field_name: str, element: str) -> np.ndarray:
-    """A writable view of ``model.<field_name>`` for the named element."""
+def model_rows(model, spec: TaskSpec) -> list[np.ndarray]:
+    """Writable views of the model entries ``spec.model_fields`` names, looked up once."""
     import mujoco
 
-    obj_type = {"site": mujoco.mjtObj.mjOBJ_SITE, "geom": mujoco.mjtObj.mjOBJ_GEOM,
-                "body": mujoco.mjtObj.mjOBJ_BODY}[field_name.split("_")[0]]
-    index = mujoco.mj_name2id(model, obj_type, element)
-    return getattr(model, field_name)[index]
+    kinds = {"site": mujoco.mjtObj.mjOBJ_SITE, "geom": mujoco.mjtObj.mjOBJ_GEOM,
+             "body": mujoco.mjtObj.mjOBJ_BODY}
+    return [getattr(model, field_name)[
+                mujoco.mj_name2id(model, kinds[field_name.split("_")[0]], element)]
+            for field_name, element in spec.model_fields]

@@ -8,6 +8,7 @@ checkpoint, and a checkpoint is only loaded into a model built from an equal con
 from __future__ import annotations
 
 import dataclasses
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -237,7 +238,7 @@ def from_json(cls: type[T], data: Mapping[str, Any]) -> T:
     if unknown:
         raise ConfigError(f"unknown fields {unknown} for {cls.__name__}")
     kwargs = {}
-    hints = _field_types(cls)
+    hints = typing.get_type_hints(cls)
     for name, value in data.items():
         kind = hints[name]
         if dataclasses.is_dataclass(kind) and isinstance(value, Mapping):
@@ -247,8 +248,3 @@ def from_json(cls: type[T], data: Mapping[str, Any]) -> T:
         kwargs[name] = value
     return cls(**kwargs)
 
-
-def _field_types(cls: type) -> dict[str, Any]:
-    import typing
-
-    return typing.get_type_hints(cls)

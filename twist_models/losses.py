@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch.nn import functional as F
 
@@ -51,5 +53,5 @@ def lambda_returns(reward: torch.Tensor, value: torch.Tensor, pcont: torch.Tenso
 def gaussian_nll(mean: torch.Tensor, target: torch.Tensor, event_dims: int = 1) -> torch.Tensor:
     """Negative log-likelihood under a unit-variance Normal, summed over the last ``event_dims``
     dimensions: [..., *event] -> [...]."""
-    nll = 0.5 * (mean - target) ** 2 + 0.5 * torch.log(torch.tensor(2 * torch.pi))
+    nll = 0.5 * (mean - target) ** 2 + 0.5 * math.log(2 * math.pi)
     return nll.sum(tuple(range(-event_dims, 0))) if event_dims else nll
