@@ -91,34 +91,48 @@ class ActorCritic(nn.Module):
         return (self.target_critic if target else self.critic)(feature).squeeze(-1)
 
     def train_step(self, world_model: WorldModel, start: State) -> dict[str, torch.Tensor]:
-        """One actor and one critic update from imagined rollouts of every ``start`` state
-        ({k: [N, ...]}, detached). The world model is frozen but differentiated through."""
+        """One actor and one critic update from imagined rollouts of the ``start`` states
+        ({k: [N, ...]}, detached; all of them, or ``imag_starts`` drawn at random). The world
+        model is frozen but differentiated through."""
         c = self.config
+        n = next(iter(start.values())).shape[0]
+        if 0 < c.imag_starts < n:
+            chosen = torch.randperm(n, device=start["deter"].device)[:c.imag_starts]
+            start = {k: v[chosen] for k, v in start.items()}
         rssm = world_model.rssm
         frozen = [p for p in world_model.parameters() if p.requires_grad]
         for p in frozen:
             p.requires_grad_(False)
+        policies: list[TruncatedNormal] = []
+
+        def act(feature: torch.Tensor) -> torch.Tensor:
+            # imagine() feeds the actor detached features, so these distributions are exactly
+            # those DreamerV2 recomputes for the entropy bonus: keeping them saves a second
+            # actor pass over every imagined state.
+            policies.append(self.actor(feature))
+            return policies[-1].rsample()
+
         try:
-            states, _ = rssm.imagine(start, c.horizon, policy=lambda f: self.actor(f).rsample())
+            states, _ = rssm.imagine(start, c.horizon, policy=act)
             feature = rssm.feature(states)  # [N, H+1, F]
-            feature_t = feature.transpose(0, 1)  # time first: [H+1, N, F]
-            reward = world_model.reward(feature_t)
-            pcont = c.discount * world_model.continuation(feature_t)
-            value = self.value(feature_t, target=True)
+            # Heads run on the contiguous [N, H+1, F] layout (a transposed input sends
+            # nn.Linear down a slow batched-matmul path); their [N, H+1] outputs go time first.
+            reward = world_model.reward(feature).T
+            pcont = c.discount * world_model.continuation(feature).T
+            value = self.value(feature, target=True).T
             # Transition t leaves state t and arrives in t + 1, whose predicted reward and
             # continuation it earns (the dataset's convention: reward[t] is for arriving at t).
             returns = lambda_returns(reward[1:], value[:-1], pcont[1:], value[-1], c.lambda_)
             weight = torch.cumprod(torch.cat([torch.ones_like(pcont[:1]), pcont[1:-1]], 0), 0)
             weight = weight.detach()
-            policy = self.actor(feature_t[:-1].detach())
-            entropy = policy.entropy().sum(-1)
+            entropy = torch.stack([p.entropy().sum(-1) for p in policies], 0)  # [H, N]
             actor_loss = -(weight * (returns + c.entropy * entropy)).mean()
         finally:
             for p in frozen:
                 p.requires_grad_(True)
         self._step(self.actor_opt, actor_loss, self.actor)
-        critic_loss = (weight * gaussian_nll(self.value(feature_t[:-1].detach()),
-                                             returns.detach(), 0)).mean()
+        critic_value = self.value(feature[:, :-1].detach().contiguous()).T
+        critic_loss = (weight * gaussian_nll(critic_value, returns.detach(), 0)).mean()
         self._step(self.critic_opt, critic_loss, self.critic)
         self.updates += 1
         if int(self.updates) % c.slow_target_every == 0:

@@ -28,7 +28,13 @@ def sample_one_hot(logits: torch.Tensor) -> torch.Tensor:
     """Straight-through one-hot sample of categorical ``logits`` [..., C]: the forward value is
     a one-hot sample, the gradient is that of the probabilities."""
     probs = F.softmax(logits, -1)
-    index = torch.multinomial(probs.reshape(-1, probs.shape[-1]), 1).reshape(probs.shape[:-1])
+    # Inverse-CDF sampling: the class is the number of cumulative probabilities below a uniform
+    # draw. An order of magnitude faster on CPU than torch.multinomial, whose exponential noise
+    # dominated the imagination loop (21 ms vs 1.5 ms for 800 x 32 x 32); the clamp absorbs a
+    # last cumulative probability that rounds below 1.
+    uniform = torch.rand(*probs.shape[:-1], 1, device=probs.device, dtype=probs.dtype)
+    below = probs.detach().cumsum(-1) < uniform
+    index = below.sum(-1).clamp_max(probs.shape[-1] - 1)
     sample = F.one_hot(index, probs.shape[-1]).to(probs.dtype)
     return sample + probs - probs.detach()
 
@@ -73,24 +79,33 @@ class RSSM(nn.Module):
     # -- one step ---------------------------------------------------------------------------
     def img_step(self, prev: State, action: torch.Tensor, sample: bool = True) -> State:
         """Prior state after taking ``action`` [..., A] in ``prev``."""
-        x = self.img_in(torch.cat([prev["stoch"].flatten(-2), action], -1))
-        deter = self.gru(x, prev["deter"])
-        logits = self._logits(self.img_out(deter))
-        stoch = sample_one_hot(logits) if sample else _mode(logits)
-        return {"deter": deter, "logits": logits, "stoch": stoch}
+        return self._prior(self._deter(prev, action), sample)
 
     def obs_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
                  is_first: torch.Tensor | None = None) -> tuple[State, State]:
         """(posterior, prior) at a step with observation embedding ``embed`` [..., E]."""
+        post = self._post_step(prev, action, embed, is_first)
+        return post, self._prior(post["deter"])
+
+    def _deter(self, prev: State, action: torch.Tensor) -> torch.Tensor:
+        x = self.img_in(torch.cat([prev["stoch"].flatten(-2), action], -1))
+        return self.gru(x, prev["deter"])
+
+    def _prior(self, deter: torch.Tensor, sample: bool = True) -> State:
+        logits = self._logits(self.img_out(deter))
+        stoch = sample_one_hot(logits) if sample else _mode(logits)
+        return {"deter": deter, "logits": logits, "stoch": stoch}
+
+    def _post_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
+                   is_first: torch.Tensor | None) -> State:
         if is_first is not None:
             keep = (~is_first.bool()).to(action.dtype)
             prev = {k: v * keep.reshape(*keep.shape, *([1] * (v.dim() - keep.dim())))
                     for k, v in prev.items()}
             action = action * keep.unsqueeze(-1)
-        prior = self.img_step(prev, action)
-        logits = self._logits(self.obs_out(torch.cat([prior["deter"], embed], -1)))
-        post = {"deter": prior["deter"], "logits": logits, "stoch": sample_one_hot(logits)}
-        return post, prior
+        deter = self._deter(prev, action)
+        logits = self._logits(self.obs_out(torch.cat([deter, embed], -1)))
+        return {"deter": deter, "logits": logits, "stoch": sample_one_hot(logits)}
 
     # -- sequences --------------------------------------------------------------------------
     def observe(self, embed: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
@@ -99,12 +114,14 @@ class RSSM(nn.Module):
         (posterior, prior), each {k: [B, T, ...]}. ``state`` continues a previous call."""
         b, t = embed.shape[:2]
         state = state if state is not None else self.initial(b, embed.device)
-        posts, priors = [], []
+        posts = []
         for i in range(t):
-            state, prior = self.obs_step(state, action[:, i], embed[:, i], is_first[:, i])
+            state = self._post_step(state, action[:, i], embed[:, i], is_first[:, i])
             posts.append(state)
-            priors.append(prior)
-        return stack_states(posts, 1), stack_states(priors, 1)
+        post = stack_states(posts, 1)
+        # Nothing in the recurrence reads the prior, so its head runs once on all [B, T]
+        # deterministic states instead of inside the sequential loop (fewer, larger matmuls).
+        return post, self._prior(post["deter"])
 
     def imagine(self, start: State, horizon: int, policy: Policy | None = None,
                 actions: torch.Tensor | None = None) -> tuple[State, torch.Tensor]:
