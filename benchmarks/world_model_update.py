@@ -1,0 +1,244 @@
+"""World-model update times on this machine (issue 4), each beside a naive baseline run in the
+same process.
+
+* ``teacher``: one full teacher update (state world model + actor-critic in imagination), and
+  the world-model part alone; state of cheetah-run's size (17), 6 actions.
+* ``student``: one student forward/backward + Adam step: 64x64 images -> CNN encoder -> RSSM
+  ``observe`` -> a matching loss on (h, posterior, prior) against fixed targets (the cost of
+  Eq. 3; no decoder). Images are uint8 as the sampler yields them.
+* Baselines: a naive eager skeleton of the same shapes written the obvious way (NCHW
+  convolutions, every head inside the time loop, ``torch.multinomial`` sampling), the
+  reference the issue's figures (0.34 s world model, 1.9 s student) were taken with.
+
+B=16, L=50, sizes of ``--preset`` (default paper = DreamerV2 DMC), random data (timings do not
+depend on values). Each figure is the median over ``--repeats`` updates after one warm-up.
+Prints one JSON line per part.
+
+    python benchmarks/world_model_update.py [--part teacher|student|all] [--preset paper]
+        [--repeats 5] [--device cpu|cuda] [--imag-starts N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from twist_models.config import PRESETS, RSSMConfig, WorldModelConfig, teacher_preset
+from twist_models.losses import categorical_kl
+from twist_models.networks import MLP
+from twist_models.teacher import Teacher
+from twist_models.world_model import WorldModel
+
+TARGETS_S = {("teacher", "cpu"): 0.25, ("student", "cpu"): 1.0, ("student", "cuda"): 0.040}
+B, L, STATE, ACTIONS = 16, 50, 17, 6
+
+
+def median_time(update: Callable[[], None], repeats: int, device: torch.device) -> list[float]:
+    update()  # warm-up (allocations, cuDNN autotuning)
+    samples = []
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        start = time.perf_counter()
+        update()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        samples.append(time.perf_counter() - start)
+    return samples
+
+
+def sequence_batch(device: torch.device, image: bool) -> dict[str, torch.Tensor]:
+    is_first = torch.zeros(B, L, dtype=torch.bool, device=device)
+    is_first[:, 0] = True
+    batch = {"action": torch.rand(B, L, ACTIONS, device=device) * 2 - 1,
+             "reward": torch.rand(B, L, device=device), "is_first": is_first,
+             "state": torch.randn(B, L, STATE, device=device)}
+    if image:
+        batch["image"] = torch.randint(0, 256, (B, L, 64, 64, 3), dtype=torch.uint8,
+                                       device=device)
+    return batch
+
+
+# -- the naive baseline ---------------------------------------------------------------------
+class NaiveSkeleton(nn.Module):
+    """The same shapes written the obvious way: heads and sampling inside the time loop."""
+
+    def __init__(self, rssm: RSSMConfig, embed: nn.Module, embed_dim: int) -> None:
+        super().__init__()
+        latent = rssm.stoch * rssm.classes
+        self.rssm = rssm
+        self.embed = embed
+        self.img_in = nn.Linear(latent + ACTIONS, rssm.hidden)
+        self.gru = nn.GRUCell(rssm.hidden, rssm.deter)
+        self.prior = nn.Sequential(nn.Linear(rssm.deter, rssm.hidden), nn.ELU(),
+                                   nn.Linear(rssm.hidden, latent))
+        self.post = nn.Sequential(nn.Linear(rssm.deter + embed_dim, rssm.hidden), nn.ELU(),
+                                  nn.Linear(rssm.hidden, latent))
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> dict[str, torch.Tensor]:
+        embed = self.embed(obs)
+        r = self.rssm
+        deter = obs.new_zeros(B, r.deter, dtype=torch.float32)
+        stoch = obs.new_zeros(B, r.stoch * r.classes, dtype=torch.float32)
+        out: dict[str, list[torch.Tensor]] = {"deter": [], "post": [], "prior": []}
+        for t in range(L):
+            deter = self.gru(F.elu(self.img_in(torch.cat([stoch, action[:, t]], -1))), deter)
+            prior = self.prior(deter).unflatten(-1, (r.stoch, r.classes))
+            post = self.post(torch.cat([deter, embed[:, t]], -1)).unflatten(-1, (r.stoch,
+                                                                                 r.classes))
+            probs = post.softmax(-1)
+            index = torch.multinomial(probs.reshape(-1, r.classes), 1).reshape(B, r.stoch)
+            sample = F.one_hot(index, r.classes).float()
+            stoch = (sample + probs - probs.detach()).flatten(-2)
+            for key, value in (("deter", deter), ("post", post), ("prior", prior)):
+                out[key].append(value)
+        return {k: torch.stack(v, 1) for k, v in out.items()}
+
+
+def naive_cnn(depth: int) -> nn.Module:
+    layers: list[nn.Module] = []
+    channels = 3
+    for i in range(4):
+        layers += [nn.Conv2d(channels, depth * 2**i, 4, stride=2), nn.ELU()]
+        channels = depth * 2**i
+    # [B*L, 3, 64, 64] -> [B, L, E]
+    return nn.Sequential(*layers, nn.Flatten(1), nn.Unflatten(0, (B, L)))
+
+
+# -- parts ----------------------------------------------------------------------------------
+def matching_loss(deter: torch.Tensor, post: torch.Tensor, prior: torch.Tensor,
+                  target: dict[str, torch.Tensor]) -> torch.Tensor:
+    return (F.mse_loss(deter, target["deter"]) + categorical_kl(target["post"], post).mean()
+            + categorical_kl(target["prior"], prior).mean())
+
+
+def bench_teacher(preset: str, repeats: int, device: torch.device,
+                  imag_starts: int | None = None) -> dict[str, object]:
+    torch.manual_seed(0)
+    config = teacher_preset(preset, STATE, ACTIONS)
+    if imag_starts is not None:
+        config = dataclasses.replace(config, actor_critic=dataclasses.replace(
+            config.actor_critic, imag_starts=imag_starts))
+    teacher = Teacher(config).to(device)
+    batch = sequence_batch(device, image=False)
+
+    def world_model_only() -> None:
+        loss, _, _ = teacher.world_model.loss(batch)
+        teacher.model_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        teacher.model_opt.step()
+
+    wm = config.world_model
+    naive = NaiveSkeleton(wm.rssm, nn.Sequential(
+        nn.Linear(STATE, 512), nn.ELU(), nn.Linear(512, 512), nn.ELU(), nn.Linear(512, 512),
+        nn.ELU()), 512).to(device)
+    decoder = MLP(wm.rssm.feature_dim, STATE, wm.state_mlp).to(device)
+    reward_head = MLP(wm.rssm.feature_dim, 1, wm.head).to(device)
+    naive_opt = torch.optim.Adam([*naive.parameters(), *decoder.parameters(),
+                                  *reward_head.parameters()], 3e-4)
+
+    def naive_world_model() -> None:
+        out = naive(batch["state"], batch["action"])
+        feature = torch.cat([out["deter"], out["post"].flatten(-2)], -1)
+        loss = (categorical_kl(out["post"], out["prior"]).mean()
+                + F.mse_loss(decoder(feature), batch["state"])
+                + F.mse_loss(reward_head(feature).squeeze(-1), batch["reward"]))
+        naive_opt.zero_grad()
+        loss.backward()
+        naive_opt.step()
+
+    samples = {"naive_world_model_s": median_time(naive_world_model, repeats, device),
+               "world_model_s": median_time(world_model_only, repeats, device),
+               "teacher_update_s": median_time(lambda: teacher.train_step(batch), repeats,
+                                               device)}
+    medians = {k: statistics.median(v) for k, v in samples.items()}
+    return {"samples": samples, "medians": medians, "figure": "teacher_update_s",
+            "imag_starts": config.actor_critic.imag_starts or B * L,
+            "actor_critic_share": round(1 - medians["world_model_s"]
+                                        / medians["teacher_update_s"], 2),
+            "world_model_speedup_vs_naive": round(medians["naive_world_model_s"]
+                                                  / medians["world_model_s"], 2)}
+
+
+def bench_student(preset: str, repeats: int, device: torch.device,
+                  imag_starts: int | None = None) -> dict[str, object]:
+    torch.manual_seed(0)
+    base = teacher_preset(preset, STATE, ACTIONS).world_model
+    config = WorldModelConfig(obs="image", state_dim=STATE, action_dim=ACTIONS, rssm=base.rssm,
+                              cnn=base.cnn, head=base.head)
+    student = WorldModel(config).to(device)
+    params = [*student.encoder.parameters(), *student.rssm.parameters()]
+    optimiser = torch.optim.AdamW(params, config.model_lr, eps=1e-5)
+    batch = sequence_batch(device, image=True)
+    r = config.rssm
+    target = {"deter": torch.randn(B, L, r.deter, device=device),
+              "post": torch.randn(B, L, r.stoch, r.classes, device=device),
+              "prior": torch.randn(B, L, r.stoch, r.classes, device=device)}
+
+    def student_update() -> None:
+        post, prior = student.rssm.observe(student.embed(batch["image"]), batch["action"],
+                                           batch["is_first"])
+        loss = matching_loss(post["deter"], post["logits"], prior["logits"], target)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+
+    naive = NaiveSkeleton(r, naive_cnn(config.cnn.depth), student.encoder.out_dim).to(device)
+    naive_opt = torch.optim.Adam(naive.parameters(), 3e-4)
+
+    def naive_update() -> None:
+        images = batch["image"].flatten(0, 1).permute(0, 3, 1, 2).float() / 255 - 0.5
+        out = naive(images, batch["action"])
+        loss = matching_loss(out["deter"], out["post"], out["prior"], target)
+        naive_opt.zero_grad()
+        loss.backward()
+        naive_opt.step()
+
+    samples = {"naive_student_s": median_time(naive_update, repeats, device),
+               "student_update_s": median_time(student_update, repeats, device)}
+    medians = {k: statistics.median(v) for k, v in samples.items()}
+    return {"samples": samples, "medians": medians, "figure": "student_update_s",
+            "speedup_vs_naive": round(medians["naive_student_s"]
+                                      / medians["student_update_s"], 2)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", default="all", choices=["teacher", "student", "all"])
+    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS))
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--imag-starts", type=int, default=None,
+                        help="override the preset's imagination starts (teacher part)")
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    parts = ["teacher", "student"] if args.part == "all" else [args.part]
+    for part in parts:
+        result = {"teacher": bench_teacher, "student": bench_student}[part](
+            args.preset, args.repeats, device, args.imag_starts)
+        medians = result.pop("medians")
+        samples = result.pop("samples")
+        figure = result.pop("figure")
+        target = TARGETS_S.get((part, device.type))
+        print(json.dumps({
+            "benchmark": f"{part}_update", "preset": args.preset, "batch": B, "length": L,
+            "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+            "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
+            **{k: round(v, 4) for k, v in medians.items()}, **result,
+            "target_s": target, "meets_target": None if target is None
+            else medians[figure] <= target,
+            "samples": {k: [round(x, 4) for x in v] for k, v in samples.items()},
+        }), flush=True)
+
+
+if __name__ == "__main__":
+    main()
