@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import logging
-import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -12,13 +10,13 @@ from typing import Annotated
 
 import pandas as pd
 import typer
-from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
+from twist_cli.common import err, out, run_app
 from twist_data.errors import TwistError
 from twist_data.export import export_hdf5, export_video
-from twist_data.randomisation import DR_PRESETS, DRConfig, dr_preset
+from twist_data.randomisation import DR_PRESETS, dr_preset
 from twist_data.reader import open_dataset
 from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
@@ -26,8 +24,6 @@ from twist_data.verify import verify_dataset
 
 app = typer.Typer(help="Inspect, verify, export, re-render and synthesise TWIST matching datasets.",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
-out = Console()
-err = Console(stderr=True)
 
 DatasetArg = Annotated[Path, typer.Argument(help="Dataset folder (or one shard folder).")]
 
@@ -178,13 +174,6 @@ BackgroundsOption = Annotated[Path | None, typer.Option(
                           "procedural bank.")]
 
 
-def _dr_config(preset: str, backgrounds: Path | None) -> DRConfig:
-    config = dr_preset(preset)
-    if backgrounds is not None:
-        config = config.replace(background="directory", background_dir=str(backgrounds))
-    return config
-
-
 @app.command()
 def tasks() -> None:
     """The simulated tasks with their state, action and physics dimensions."""
@@ -218,7 +207,7 @@ def render(
     """Re-render a simulated dataset's stored physics states under a new DR config into OUT."""
     from twist_data.rerender import rerender_dataset
 
-    config = _dr_config(dr, backgrounds)
+    config = dr_preset(dr, backgrounds)
     with progress_bar("rendering") as update:
         rerender_dataset(dataset, out_dir, config, views=views, image_size=image_size,
                          add_views=add_views, supersample=supersample, seed=seed,
@@ -244,7 +233,7 @@ def record(
     """Record random-policy episodes of a task with K randomised views (prefill, demos)."""
     from twist_data.rollout import record_dataset
 
-    config = _dr_config(dr, backgrounds)
+    config = dr_preset(dr, backgrounds)
     with progress_bar("recording") as update:
         record_dataset(out_dir, task, episodes, config, views=views, image_size=image_size,
                        max_steps=max_steps, seed=seed, shard=shard, on_episode=update)
@@ -265,19 +254,14 @@ def contact_sheet_cmd(
 
     rows = {"train": dr_preset("train"), "heldout": dr_preset("heldout")}
     if backgrounds is not None:
-        rows["user"] = _dr_config("heldout", backgrounds)
+        rows["user"] = dr_preset("heldout", backgrounds)
     sheet = contact_sheet(task, views=views, image_size=image_size, seed=seed, rows=rows)
     out.print(f"wrote {write_contact_sheet(out_path, sheet)}")
 
 
 def main() -> None:
     """Entry point: known errors become one line on stderr and exit code 2."""
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        app()
-    except TwistError as exc:
-        err.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
-        sys.exit(2)
+    run_app(app)
 
 
 if __name__ == "__main__":

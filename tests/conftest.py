@@ -27,3 +27,16 @@ def small_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def fresh_dataset(tmp_path: Path) -> Path:
     """A private copy-sized dataset a test may damage."""
     return write_synthetic_dataset(tmp_path / "ds", SMALL)
+
+
+@pytest.fixture(scope="session")
+def gl() -> None:
+    """Skip rendering tests, with the reason, only if no OpenGL context can be made at all."""
+    from twist_data.errors import RenderUnavailableError
+    from twist_data.randomisation import dr_preset
+    from twist_data.render import DRRenderer
+
+    try:
+        DRRenderer("cartpole-balance", dr_preset("none"), 8, 1).close()
+    except RenderUnavailableError as exc:
+        pytest.skip(f"no offscreen OpenGL on this machine: {exc}")

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from twist_data.backgrounds import FAMILIES, directory_bank, procedural_bank
-from twist_data.errors import BackgroundError, ConfigError, PhysicsStateError, RenderUnavailableError
+from twist_data.errors import BackgroundError, ConfigError, PhysicsStateError
 from twist_data.randomisation import DR_PRESETS, DRConfig, DRSampler, dr_preset
 from twist_data.reader import open_dataset
 from twist_data.render import DRRenderer
@@ -21,15 +21,6 @@ from twist_data.rollout import random_policy, record_episode, simulated_spec
 from twist_data.tasks import TaskEnv
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
-
-
-@pytest.fixture(scope="module")
-def gl() -> None:
-    """Skip rendering tests, with the reason, only if no OpenGL context can be made at all."""
-    try:
-        DRRenderer("cartpole-balance", dr_preset("none"), 8, 1).close()
-    except RenderUnavailableError as exc:
-        pytest.skip(f"no offscreen OpenGL on this machine: {exc}")
 
 
 @pytest.fixture

@@ -9,6 +9,7 @@ pixels. Because the parameters are stored, any frame can be reproduced or re-ran
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -112,12 +113,17 @@ DR_PRESETS: dict[str, DRConfig] = {
 }
 
 
-def dr_preset(name: str) -> DRConfig:
+def dr_preset(name: str, backgrounds: str | os.PathLike[str] | None = None) -> DRConfig:
+    """Preset ``name``, with the backgrounds drawn from the images/videos in ``backgrounds``
+    instead of the procedural bank when a folder is given."""
     try:
-        return DR_PRESETS[name]
+        config = DR_PRESETS[name]
     except KeyError:
         raise ConfigError(f"unknown DR preset {name!r}; valid presets are: "
                           f"{', '.join(DR_PRESETS)}") from None
+    if backgrounds is not None:
+        config = config.replace(background="directory", background_dir=str(backgrounds))
+    return config
 
 
 #: Per-step, per-view parameters written to ``data/dr/<name>``.

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -70,24 +71,44 @@ def simulated_spec(env: TaskEnv, renderer: DRRenderer, extra: dict[str, Any] | N
 
 def record_episode(env: TaskEnv, renderer: DRRenderer, sampler: DRSampler, policy: Policy,
                    seed: int, policy_name: str = "random", teacher_step: int = -1,
-                   env_step: int = 0) -> tuple[Episode, EpisodeInfo]:
-    """Run one episode from ``env.reset(seed)`` and render K randomised views of every step."""
+                   env_step: int = 0, timings: dict[str, float] | None = None,
+                   ) -> tuple[Episode, EpisodeInfo]:
+    """Run one episode from ``env.reset(seed)`` and render K randomised views of every step.
+
+    ``timings``, when given, accumulates seconds spent in ``physics``, ``render`` (DR draws
+    included) and ``policy``.
+    """
+    clock = timings if timings is not None else {}
+    for part in ("physics", "render", "policy"):
+        clock.setdefault(part, 0.0)
+    tick = time.perf_counter()
+
+    def lap(part: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        clock[part] += now - tick
+        tick = now
+
     dynamics = sampler.begin_episode(seed)
     step = env.reset(seed=seed, dynamics=dynamics)
     steps: list[Step] = []
     actions: list[np.ndarray] = [np.zeros(env.action_dim, np.float32)]
     images: list[np.ndarray] = []
     params: list[dict[str, np.ndarray]] = []
+    lap("physics")
     while True:
         view_params = sampler.sample()
         images.append(renderer.render(step.physics, view_params))
         params.append(view_params)
         steps.append(step)
+        lap("render")
         if step.is_last:
             break
         action = np.clip(np.asarray(policy(step), np.float32), -1.0, 1.0)
         actions.append(action)
+        lap("policy")
         step = env.step(action)
+        lap("physics")
     episode = Episode(
         image=np.stack(images),
         state=np.stack([s.state for s in steps]),

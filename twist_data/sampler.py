@@ -191,6 +191,15 @@ class WindowSampler:
             self._reindex()
         return new
 
+    @property
+    def rng_state(self) -> dict:
+        """The draw generator's state (JSON-safe), to resume a stream exactly."""
+        return self._rng.bit_generator.state
+
+    @rng_state.setter
+    def rng_state(self, state: dict) -> None:
+        self._rng.bit_generator.state = state
+
     def flat_to_start(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Map flat window indices to (global start step, global episode index)."""
         episode = np.searchsorted(self._cum_valid, flat, side="right")

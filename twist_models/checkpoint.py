@@ -40,12 +40,16 @@ class Checkpoint:
     """Step counters (updates, environment steps, ...)."""
     versions: dict[str, str]
     """Library versions that wrote it."""
+    extra: dict[str, Any]
+    """JSON run state of whoever wrote it (e.g. the collector's RNG states); may be empty."""
 
 
 def save_checkpoint(path: str | os.PathLike[str], kind: str, module: nn.Module, config: Any,
                     optimisers: Mapping[str, torch.optim.Optimizer] | None = None,
-                    counters: Mapping[str, int] | None = None) -> Path:
-    """Atomically write ``module``'s weights, its ``config`` and optimiser states to ``path``."""
+                    counters: Mapping[str, int] | None = None,
+                    extra: Mapping[str, Any] | None = None) -> Path:
+    """Atomically write ``module``'s weights, its ``config`` and optimiser states to ``path``;
+    ``extra`` is any JSON-serialisable run state."""
     import twist_data
 
     path = Path(path)
@@ -56,6 +60,7 @@ def save_checkpoint(path: str | os.PathLike[str], kind: str, module: nn.Module, 
         "optimisers": {k: v.state_dict() for k, v in (optimisers or {}).items()},
         "counters": {k: int(v) for k, v in (counters or {}).items()},
         "versions": {"twist": str(twist_data.__version__), "torch": str(torch.__version__)},
+        "extra": json.dumps(dict(extra or {}), sort_keys=True),
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -84,7 +89,8 @@ def read_checkpoint(path: str | os.PathLike[str], kind: str | None = None) -> Ch
                               f"not a {kind}")
     return Checkpoint(kind=payload["kind"], config=json.loads(payload["config"]),
                       weights=payload["weights"], optimisers=payload["optimisers"],
-                      counters=payload["counters"], versions=payload["versions"])
+                      counters=payload["counters"], versions=payload["versions"],
+                      extra=json.loads(payload.get("extra", "{}")))
 
 
 def config_differences(stored: Mapping[str, Any], expected: Mapping[str, Any],

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import nn
@@ -82,10 +83,11 @@ class Teacher(nn.Module):
 
 
 def save_teacher(path: str | os.PathLike[str], teacher: Teacher,
-                 counters: dict[str, int] | None = None) -> Path:
-    """Checkpoint a teacher with its optimisers and update count."""
+                 counters: dict[str, int] | None = None,
+                 extra: dict[str, Any] | None = None) -> Path:
+    """Checkpoint a teacher with its optimisers, update count and any JSON ``extra``."""
     return save_checkpoint(path, "teacher", teacher, teacher.config, teacher.optimisers(),
-                           {"updates": int(teacher.step), **(counters or {})})
+                           {"updates": int(teacher.step), **(counters or {})}, extra)
 
 
 def load_teacher(path: str | os.PathLike[str], state_dim: int | None = None,

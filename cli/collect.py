@@ -1,0 +1,96 @@
+"""``twist-collect``: train the state teacher online and write the matching dataset D."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
+
+from twist_cli.common import err, out, run_app
+from twist_data.tasks import DEFAULT_TASK
+from twist_models.collect import COLLECT_PRESETS, collect, collect_preset, run_dir, stored_config
+from twist_models.collect import Progress as CollectProgress
+
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+
+
+def shard_name(shard: str) -> str:
+    """``--shard 3`` means ``collect-003``; any other value is the shard's name."""
+    return f"collect-{int(shard):03d}" if shard.isdigit() else shard
+
+
+@app.command()
+def main(
+    out_dir: Annotated[Path, typer.Option("--out", help="Dataset folder (created if needed).")],
+    task: Annotated[str | None, typer.Option(
+        help=f"DMC task (see `twist-data tasks`) [{DEFAULT_TASK}].")] = None,
+    preset: Annotated[str, typer.Option(
+        help=f"Sizes and schedule: {', '.join(COLLECT_PRESETS)}; a resumed run keeps its "
+             "own.")] = "quick",
+    steps: Annotated[int | None, typer.Option(
+        help="Environment frames to collect (default: the preset's).")] = None,
+    views: Annotated[int | None, typer.Option("--views", help="K renders per step [2].")] = None,
+    image_size: Annotated[int | None, typer.Option(help="Render side in pixels [64].")] = None,
+    dr: Annotated[str | None, typer.Option(help="DR preset of the renders [train].")] = None,
+    backgrounds: Annotated[Path | None, typer.Option(
+        help="Folder of images/videos to use as backgrounds.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Run seed [0].")] = None,
+    shard: Annotated[str, typer.Option(
+        help="Shard index (N -> collect-00N) or name; one per concurrent collector.")] = "0",
+    device: Annotated[str, typer.Option(help="torch device of the teacher.")] = "cpu",
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue an interrupted run of this shard.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+) -> None:
+    """Train a DreamerV2 teacher on privileged state while recording K randomised renders of
+    every step it takes into a matching dataset, crash-safe and resumable."""
+    name = shard_name(shard)
+    overrides = {"task": task, "frames": steps, "views": views, "image_size": image_size,
+                 "dr": dr, "backgrounds": None if backgrounds is None else str(backgrounds),
+                 "seed": seed}
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if resume and (run_dir(out_dir, name) / "config.json").exists():
+        # A resumed run keeps its stored config; flags given again must agree with it
+        # (collect() refuses any difference but --steps).
+        config = dataclasses.replace(stored_config(out_dir, name), **given)
+    else:
+        config = collect_preset(preset, **given)
+    with progress_bar(quiet) as report:
+        summary = collect(out_dir, config, shard=name, resume=resume, device=device,
+                          on_progress=report)
+    out.print(json.dumps(summary.to_json(), indent=2))
+
+
+@contextmanager
+def progress_bar(quiet: bool) -> Iterator[Callable[[CollectProgress], None] | None]:
+    """A Rich bar on stderr with frames/s, the last episode return and the latest eval."""
+    if quiet:
+        yield None
+        return
+    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TextColumn("{task.fields[stats]}"), TimeRemainingColumn(),
+                  console=err) as bar:
+        task = bar.add_task("collecting", total=None, stats="")
+
+        def report(p: CollectProgress) -> None:
+            evaluation = "" if p.eval_return is None else f", eval {p.eval_return:.0f}"
+            stats = (f"{p.frames_per_second:.0f} frames/s, return {p.episode_return:.0f}"
+                     f"{evaluation}, {p.updates} updates")
+            bar.update(task, completed=p.frames, total=p.total_frames, stats=stats)
+
+        yield report
+
+
+def entry() -> None:
+    run_app(app, log_level=logging.INFO)
+
+
+if __name__ == "__main__":
+    entry()

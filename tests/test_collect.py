@@ -1,0 +1,163 @@
+"""twist-collect: an online teacher run writes a verified dataset, survives SIGKILL, refuses
+bad output folders. Every run uses the ``tiny`` preset (seconds, learns nothing)."""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from twist_data.errors import UnknownTaskError
+from twist_data.randomisation import derived_seed
+from twist_data.reader import open_dataset
+from twist_data.tasks import Dynamics, TaskEnv
+from twist_data.verify import verify_dataset
+from twist_data.writer import ShardWriter
+from twist_models.collect import (
+    CollectError,
+    collect,
+    collect_preset,
+    find_teacher,
+    shard_seed,
+)
+from twist_models.teacher import load_teacher
+
+pytestmark = pytest.mark.usefixtures("gl")
+COLLECT = [sys.executable, "-m", "twist_cli.collect"]
+
+
+def _resimulate(task: str, dataset, index: int) -> tuple[np.ndarray, np.ndarray]:
+    """States and physics of episode ``index`` re-simulated from its seed, dynamics and actions."""
+    info, episode = dataset.episode_info(index), dataset.episode(index)
+    env = TaskEnv(task, action_repeat=dataset.spec.action_repeat, max_steps=len(episode) - 1)
+    dynamics = Dynamics(friction_scale=float(info.dr["friction_scale"]),
+                        mass_scale=float(info.dr["mass_scale"]))
+    steps = [env.reset(seed=info.seed, dynamics=dynamics)]
+    steps += [env.step(a) for a in episode.action[1:]]
+    return np.stack([s.state for s in steps]), np.stack([s.physics for s in steps])
+
+
+def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> None:
+    config = collect_preset("tiny")
+    summary = collect(tmp_path, config)
+    assert summary.frames >= config.frames and summary.episodes == summary.frames // 100
+    assert verify_dataset(tmp_path).ok
+    dataset = open_dataset(tmp_path)
+    assert dataset.spec.views == 2 and dataset.spec.task == config.task
+    seed = shard_seed(config.seed, "collect-000")
+    for index in range(dataset.n_episodes):
+        info = dataset.episode_info(index)
+        assert info.seed == derived_seed(seed, index)  # one episode per index: none lost
+        assert info.env_step == index * 100
+        # Prefill (100 frames = the first episode) is random; then the teacher acts.
+        assert (info.policy, info.teacher_step >= 0) == (
+            ("random", False) if index == 0 else ("teacher", True))
+        states, physics = _resimulate(config.task, dataset, index)
+        episode = dataset.episode(index)
+        np.testing.assert_array_equal(states, episode.state)
+        np.testing.assert_array_equal(physics, episode.physics)
+    runs = tmp_path / "collect" / "collect-000"
+    metrics = pd.read_csv(runs / "metrics.csv")
+    assert list(metrics["episodes"]) == list(range(1, dataset.n_episodes + 1))
+    assert metrics["model_loss"].notna().sum() >= dataset.n_episodes - 1
+    assert len(pd.read_csv(runs / "eval.csv")) == config.frames // config.eval_every
+    teacher, checkpoint = load_teacher(find_teacher(tmp_path), dataset.spec.state_dim)
+    assert checkpoint.counters["frames"] == summary.frames
+    assert int(teacher.step) == config.updates_due(summary.frames) == summary.updates
+
+
+def test_sigkilled_cli_run_resumes_without_duplicates_or_losses(tmp_path: Path) -> None:
+    out = tmp_path / "D"
+    args = [*COLLECT, "--out", str(out), "--preset", "tiny", "--steps", "800", "--quiet"]
+    shard = out / "collect-000.zarr"
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:  # kill once >= 3 episodes are committed
+            if shard.exists() and _committed(shard) >= 3:
+                break
+            time.sleep(0.05)
+        else:
+            pytest.fail("the collector committed nothing in 120 s")
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    killed_at = _committed(shard)
+    assert verify_dataset(out).ok  # consistent at the instant of the kill
+    done = subprocess.run([*args, "--resume"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert verify_dataset(out).ok
+    dataset = open_dataset(out)
+    assert dataset.n_episodes == 8 > killed_at
+    seed = shard_seed(0, "collect-000")
+    seeds = [dataset.episode_info(i).seed for i in range(dataset.n_episodes)]
+    assert seeds == [derived_seed(seed, i) for i in range(8)]
+    steps = [dataset.episode_info(i).env_step for i in range(dataset.n_episodes)]
+    assert steps == [100 * i for i in range(8)]
+    metrics = pd.read_csv(out / "collect" / "collect-000" / "metrics.csv")
+    assert metrics["episodes"].is_unique
+
+
+def _committed(shard: Path) -> int:
+    try:
+        return open_dataset(shard).n_episodes
+    except Exception:  # the shard is being created
+        return 0
+
+
+def test_disk_full_drops_the_partial_episode_and_resume_continues(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    config = collect_preset("tiny")
+    real_commit = ShardWriter._commit
+
+    def commit_fails_on_the_third(self: ShardWriter, n_episodes: int, n_steps: int) -> None:
+        if n_episodes == 3:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real_commit(self, n_episodes, n_steps)
+
+    monkeypatch.setattr(ShardWriter, "_commit", commit_fails_on_the_third)
+    with pytest.raises(CollectError, match=r"disk full while writing episode 2 .* 2 committed"):
+        collect(tmp_path, config)
+    assert verify_dataset(tmp_path).ok
+    assert open_dataset(tmp_path).n_episodes == 2
+    monkeypatch.setattr(ShardWriter, "_commit", real_commit)
+    summary = collect(tmp_path, config, resume=True)
+    assert summary.episodes == 4 and verify_dataset(tmp_path).ok
+
+
+def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path) -> None:
+    with pytest.raises(UnknownTaskError, match="nope"):
+        collect_preset("tiny", task="nope")
+    config = dataclasses.replace(collect_preset("tiny"), frames=100)
+    collect(tmp_path, config)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    with pytest.raises(CollectError, match="views 2, but this run asks for 3"):
+        collect(tmp_path, dataclasses.replace(config, views=3), shard="other")
+    with pytest.raises(CollectError, match="task 'cartpole-balance', but this run asks for "
+                                           "'cup-catch'"):
+        collect(tmp_path, dataclasses.replace(config, task="cup-catch"), shard="other")
+    with pytest.raises(CollectError, match=r"already exists .* pass --resume"):
+        collect(tmp_path, config)
+    with pytest.raises(CollectError, match="seed was 0, now 5"):
+        collect(tmp_path, dataclasses.replace(config, seed=5), resume=True)
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    with pytest.raises(CollectError, match="cannot create output folder"):
+        collect(blocker / "D", config)
+
+
+def test_cli_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--task", "nope"],
+                          capture_output=True, text=True)
+    assert done.returncode == 2
+    assert done.stderr.startswith("error: unknown task 'nope'") and "Traceback" not in done.stderr

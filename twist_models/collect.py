@@ -1,0 +1,538 @@
+"""Train the state teacher online and write the matching dataset D while it trains.
+
+One collector owns one shard of D and the run folder ``<out>/collect/<shard>/``:
+``config.json`` (the resolved configs), ``metrics.csv`` (one row per episode), ``eval.csv``,
+``latest.pt`` (after every episode), ``teacher-<frames>.pt`` (every ``snapshot_every``
+frames) and ``teacher.pt`` (the final teacher, which ``twist-distil`` picks by default).
+
+Decisions (the README's "twist-collect" section says more):
+
+* **The teacher's replay is D itself.** Its windows come from a :class:`WindowSampler` on its
+  own shard, low-dimensional keys only, refreshed after each commit. What the teacher trained
+  on is exactly what D holds, the student's sampler and the teacher's replay are one code
+  path, and resuming needs no replay file. Only committed episodes are replayed, as
+  DreamerV2 adds whole episodes to its replay.
+* **Updates between episodes, at DreamerV2's ratio.** After each committed episode the
+  teacher trains until it has made ``pretrain_updates + (agent steps - prefill) /
+  train_every`` updates. Every episode is thus acted by one teacher, named in its provenance
+  (``teacher_step``), and a checkpoint taken between episodes is consistent with D.
+* **Resume = checkpoint + D.** ``latest.pt`` holds the teacher, its optimisers, the torch and
+  replay RNG states and the evaluation schedule. Episodes committed after it (a kill between
+  commit and checkpoint) stay in D; the resumed teacher replays them and makes up the
+  updates it owes. Uncommitted episodes are dropped by the writer. Nothing is duplicated or
+  lost.
+* **Evaluation** runs the teacher's mode action on the privileged state, nominal dynamics,
+  fixed seeds, without rendering; evaluation episodes are not written to D (they would cost
+  renders and add off-distribution, noise-free behaviour to the training data).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import errno
+import json
+import logging
+import os
+import time
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from twist_data.errors import ConfigError, TwistError
+from twist_data.randomisation import DR_PRESETS, derived_seed, dr_preset
+from twist_data.reader import open_dataset
+from twist_data.render import DRRenderer
+from twist_data.rollout import Policy, random_policy, record_episode, simulated_spec
+from twist_data.sampler import SamplerConfig, WindowSampler
+from twist_data.tasks import DEFAULT_TASK, Dynamics, Step, TaskEnv, task_spec
+from twist_data.writer import ShardWriter, shard_path
+from twist_models.checkpoint import read_checkpoint
+from twist_models.config import PRESETS, TeacherConfig, from_json, teacher_preset, to_json
+from twist_models.teacher import Teacher, load_teacher, save_teacher
+
+log = logging.getLogger(__name__)
+
+REPLAY_KEYS = ("state", "action", "reward", "is_first", "is_terminal")
+FINAL_TEACHER = "teacher.pt"
+TIMED_PARTS = ("physics", "render", "policy", "write", "learn", "eval", "checkpoint")
+#: metrics.csv columns; training metrics are means over the updates after each episode.
+METRIC_COLUMNS = (
+    "frames", "episodes", "updates", "return", "wall_s",
+    *(f"seconds_{part}" for part in TIMED_PARTS),
+    "model_loss", "kl", "recon_loss", "reward_loss", "discount_loss", "model_grad_norm",
+    "actor_loss", "critic_loss", "imagined_return", "imagined_reward", "actor_entropy")
+
+
+class CollectError(TwistError):
+    """Collection cannot start or continue (output folder, disk, resume state)."""
+
+
+@dataclass(frozen=True)
+class CollectConfig:
+    """One collector run: task, rendering, teacher sizes and the training schedule."""
+
+    task: str = DEFAULT_TASK
+    """DMC task (``twist-data tasks``)."""
+    model: str = "quick"
+    """Teacher size preset (``tiny``, ``quick``, ``paper``)."""
+    frames: int = 100_000
+    """Environment frames to collect (agent steps x action repeat), prefill included."""
+    views: int = 2
+    """K randomised renders per step."""
+    image_size: int = 64
+    """Render side in pixels."""
+    dr: str = "train"
+    """DR preset of the renders (``twist-data`` lists them)."""
+    backgrounds: str | None = None
+    """Folder of background images/videos replacing the procedural bank; None: procedural."""
+    action_repeat: int = 2
+    """Simulator steps per agent step (DreamerV2 DMC: 2)."""
+    max_steps: int | None = None
+    """Agent steps per episode; None: the task's own limit (1000 frames)."""
+    seed: int = 0
+    """Run seed; each shard derives its own teacher, episode and replay seeds from it."""
+    prefill_frames: int = 2_000
+    """Frames of uniform random actions before the teacher acts (DreamerV2: 1000 steps)."""
+    pretrain_updates: int = 100
+    """Teacher updates on the prefill data before it first acts (DreamerV2: 100)."""
+    train_every: int = 5
+    """Agent steps per teacher update (DreamerV2: 5)."""
+    batch_size: int = 16
+    """Replay windows per update."""
+    batch_length: int = 50
+    """Steps per replay window."""
+    eval_every: int = 10_000
+    """Frames between evaluations of the teacher on states."""
+    eval_episodes: int = 5
+    """Episodes per evaluation."""
+    snapshot_every: int = 100_000
+    """Frames between kept teacher checkpoints (``latest.pt`` is written every episode)."""
+    imag_starts: int | None = None
+    """Override of the model preset's imagination starts (0 = all); None keeps the preset's."""
+
+    def __post_init__(self) -> None:
+        task_spec(self.task)  # raises UnknownTaskError naming the valid tasks
+        if self.model not in PRESETS:
+            raise ConfigError(f"unknown model preset {self.model!r}; valid: {', '.join(PRESETS)}")
+        if self.dr not in DR_PRESETS:
+            raise ConfigError(f"unknown DR preset {self.dr!r}; valid: {', '.join(DR_PRESETS)}")
+        for name in ("frames", "views", "image_size", "action_repeat", "train_every",
+                     "batch_size", "batch_length", "eval_every", "snapshot_every"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("prefill_frames", "pretrain_updates", "eval_episodes"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.max_steps is not None and self.max_steps < self.batch_length:
+            raise ConfigError(f"max_steps {self.max_steps} is shorter than one replay window "
+                              f"(batch_length {self.batch_length})")
+
+    def teacher_config(self, state_dim: int, action_dim: int) -> TeacherConfig:
+        config = teacher_preset(self.model, state_dim, action_dim)
+        if self.imag_starts is not None:
+            config = dataclasses.replace(config, actor_critic=dataclasses.replace(
+                config.actor_critic, imag_starts=self.imag_starts))
+        return config
+
+    def updates_due(self, frames: int) -> int:
+        """Teacher updates owed once ``frames`` frames are in D (DreamerV2's train ratio)."""
+        if frames < self.prefill_frames:
+            return 0
+        steps_after_prefill = (frames - self.prefill_frames) // self.action_repeat
+        return self.pretrain_updates + steps_after_prefill // self.train_every
+
+
+COLLECT_PRESETS: dict[str, CollectConfig] = {
+    # DreamerV2 DMC: 500K frames, eval every 10K frames.
+    "paper": CollectConfig(model="paper", frames=500_000, eval_every=10_000, eval_episodes=10,
+                           snapshot_every=100_000),
+    # Chosen so that cartpole-balance learns on a 2-core CPU in well under 30 minutes.
+    "quick": CollectConfig(model="quick", frames=40_000, eval_every=4_000, eval_episodes=3,
+                           snapshot_every=20_000, prefill_frames=2_000, pretrain_updates=100,
+                           imag_starts=256),
+    # Tests and smoke runs: seconds, learns nothing.
+    "tiny": CollectConfig(model="tiny", frames=400, max_steps=50, eval_every=200,
+                          eval_episodes=1, snapshot_every=200, prefill_frames=100,
+                          pretrain_updates=2, train_every=25, batch_size=4, batch_length=16),
+}
+
+
+def collect_preset(name: str, **overrides: Any) -> CollectConfig:
+    """Preset ``name`` with fields replaced by ``overrides`` (None values are ignored)."""
+    if name not in COLLECT_PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; valid presets are: "
+                          f"{', '.join(COLLECT_PRESETS)}")
+    return dataclasses.replace(COLLECT_PRESETS[name],
+                               **{k: v for k, v in overrides.items() if v is not None})
+
+
+def shard_seed(seed: int, shard: str) -> int:
+    """Each shard's own seed: shard ``collect-007`` (or any name) gets a distinct stream."""
+    return derived_seed(seed, zlib.crc32(shard.encode()))
+
+
+# -- progress and results ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class Progress:
+    """Reported after every committed episode."""
+
+    frames: int
+    total_frames: int
+    episodes: int
+    updates: int
+    episode_return: float
+    eval_return: float | None
+    frames_per_second: float
+
+
+@dataclass
+class CollectSummary:
+    """What a collector run did."""
+
+    shard: Path
+    run_dir: Path
+    teacher: Path
+    episodes: int
+    frames: int
+    updates: int
+    last_return: float | None
+    best_eval_return: float | None
+    last_eval_return: float | None
+    dataset_bytes: int
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {k: str(v) if isinstance(v, Path) else v
+                for k, v in dataclasses.asdict(self).items()}
+
+
+# -- the collector ----------------------------------------------------------------------------
+def run_dir(out: str | os.PathLike[str], shard: str) -> Path:
+    return Path(out) / "collect" / shard
+
+
+def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "collect-000",
+            resume: bool = False, device: str = "cpu",
+            on_progress: Callable[[Progress], None] | None = None) -> CollectSummary:
+    """Collect ``config.frames`` frames into shard ``shard`` of the dataset at ``out`` while
+    training a teacher on them; ``resume`` continues an interrupted run of the same config."""
+    out = Path(out)
+    path = shard_path(out, shard)
+    folder = run_dir(out, shard)
+    _check_output(out, path, folder, config, resume)
+    seed = shard_seed(config.seed, shard)
+    env = TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
+    dr_config = dr_preset(config.dr, config.backgrounds)
+    teacher_config = config.teacher_config(env.state_dim, env.action_dim)
+    torch_device = torch.device(device)
+    with DRRenderer(config.task, dr_config, config.image_size, config.views) as renderer:
+        if path.exists():
+            writer = ShardWriter.resume(path)
+        else:
+            folder.mkdir(parents=True, exist_ok=True)
+            extra = {"collect": to_json(config), "teacher": to_json(teacher_config)}
+            writer = ShardWriter.create(out, shard, simulated_spec(env, renderer, extra))
+        with writer:
+            run = _Run(out, path, folder, config, teacher_config, env, renderer, writer, seed,
+                       torch_device)
+            return run.loop(on_progress)
+
+
+def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
+                  resume: bool) -> None:
+    """Refuse, before anything is written, every output that would mix incompatible data."""
+    if out.exists() and not out.is_dir():
+        raise CollectError(f"output {str(out)!r} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CollectError(f"cannot create output folder {str(out)!r}: {exc.strerror}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise CollectError(f"output folder {str(out)!r} is not writable")
+    if (out / "zarr.json").exists():
+        raise CollectError(f"{str(out)!r} is a single shard; give the dataset folder above it")
+    if any(out.glob("*.zarr")):
+        spec = open_dataset(out).spec
+        for name, have, want in (("task", spec.task, config.task),
+                                 ("views", spec.views, config.views),
+                                 ("image size", spec.image_height, config.image_size),
+                                 ("action repeat", spec.action_repeat, config.action_repeat)):
+            if have != want:
+                raise CollectError(f"{str(out)!r} holds a dataset with {name} {have!r}, but this "
+                                   f"run asks for {want!r}; use another --out")
+    if path.exists() and not resume:
+        raise CollectError(f"shard {path.name!r} already exists in {str(out)!r}; pass --resume "
+                           "to continue it, or --shard to add another")
+    stored = folder / "config.json"
+    if resume and stored.exists():
+        before = json.loads(stored.read_text())["collect"]
+        now = to_json(config)
+        changed = [f"{k} was {before.get(k)!r}, now {now[k]!r}" for k in now
+                   if k != "frames" and before.get(k) != now[k]]
+        if changed:
+            raise CollectError(f"--resume with a different config ({'; '.join(changed)}); only "
+                               "--steps may change when resuming")
+
+
+class _Run:
+    """The state of one collector run; :meth:`loop` drives it."""
+
+    def __init__(self, out: Path, path: Path, folder: Path, config: CollectConfig,
+                 teacher_config: TeacherConfig, env: TaskEnv, renderer: DRRenderer,
+                 writer: ShardWriter, seed: int, device: torch.device) -> None:
+        self.out, self.path, self.folder, self.config = out, path, folder, config
+        self.env, self.renderer, self.writer, self.seed, self.device = (env, renderer, writer,
+                                                                        seed, device)
+        self.dr_sampler = renderer.sampler(seed)
+        self.eval_env = TaskEnv(config.task, config.action_repeat, seed=seed,
+                                max_steps=config.max_steps)
+        self.seconds = dict.fromkeys(TIMED_PARTS, 0.0)
+        self.replay: WindowSampler | None = None
+        self.replay_state: dict | None = None
+        self.next_eval = config.eval_every
+        self.next_snapshot = config.snapshot_every
+        self.evaluated_at = -1
+        self.train_metrics: dict[str, float] = {}
+        self.eval_returns: list[float] = []
+        self.last_return: float | None = None
+        self.board = _Board(folder)
+        self._load_or_create_teacher(teacher_config)
+        (folder / "config.json").write_text(json.dumps(
+            {"collect": to_json(config), "teacher": to_json(teacher_config),
+             "shard": path.name, "seed": seed}, indent=2))
+
+    # -- state -------------------------------------------------------------------------------
+    def _load_or_create_teacher(self, teacher_config: TeacherConfig) -> None:
+        latest = self.folder / "latest.pt"
+        if latest.exists():
+            self.teacher, checkpoint = load_teacher(latest, self.env.state_dim,
+                                                    self.env.action_dim)
+            if to_json(self.teacher.config) != to_json(teacher_config):
+                raise CollectError(f"{str(latest)!r} was written for another teacher config")
+            extra = checkpoint.extra
+            torch.set_rng_state(torch.tensor(extra["torch_rng"], dtype=torch.uint8))
+            self.replay_state = extra.get("replay_rng")
+            self.next_eval = extra["next_eval"]
+            self.next_snapshot = extra["next_snapshot"]
+            self.evaluated_at = extra["evaluated_at"]
+            self.eval_returns = extra.get("eval_returns", [])
+            log.info("resumed the teacher at update %d from %s", int(self.teacher.step), latest)
+        else:
+            torch.manual_seed(self.seed)
+            self.teacher = Teacher(teacher_config)
+        self.teacher.to(self.device)
+
+    @property
+    def frames(self) -> int:
+        shard = self.writer
+        return (shard.n_steps - shard.n_episodes) * self.config.action_repeat
+
+    # -- one iteration -----------------------------------------------------------------------
+    def loop(self, on_progress: Callable[[Progress], None] | None) -> CollectSummary:
+        c = self.config
+        started, start_frames = time.perf_counter(), self.frames
+        self._train()  # updates owed by episodes committed after the last checkpoint
+        while self.frames < c.frames:
+            episode_return = self._collect_episode()
+            self._train()
+            if self.frames >= self.next_eval:
+                self._evaluate()
+            self._checkpoint()
+            self._log_metrics(episode_return)
+            if on_progress is not None:
+                elapsed = max(time.perf_counter() - started, 1e-9)
+                on_progress(Progress(self.frames, c.frames, self.writer.n_episodes,
+                                     int(self.teacher.step), episode_return,
+                                     self.eval_returns[-1] if self.eval_returns else None,
+                                     (self.frames - start_frames) / elapsed))
+        if self.evaluated_at != self.frames:
+            self._evaluate()
+        final = self._checkpoint(final=True)
+        summary = CollectSummary(
+            shard=self.path, run_dir=self.folder, teacher=final,
+            episodes=self.writer.n_episodes, frames=self.frames, updates=int(self.teacher.step),
+            last_return=self.last_return,
+            best_eval_return=max(self.eval_returns) if self.eval_returns else None,
+            last_eval_return=self.eval_returns[-1] if self.eval_returns else None,
+            dataset_bytes=sum(f.stat().st_size for f in self.path.rglob("*") if f.is_file()),
+            seconds={k: round(v, 2) for k, v in self.seconds.items()})
+        (self.folder / "summary.json").write_text(json.dumps(summary.to_json(), indent=2))
+        return summary
+
+    def _collect_episode(self) -> float:
+        c = self.config
+        index, frames = self.writer.n_episodes, self.frames
+        episode_seed = derived_seed(self.seed, index)
+        if frames < c.prefill_frames:
+            policy, name, step = random_policy(self.env.action_dim, episode_seed), "random", -1
+        else:
+            policy, name, step = self._teacher_policy(), "teacher", int(self.teacher.step)
+        episode, info = record_episode(self.env, self.renderer, self.dr_sampler, policy,
+                                       seed=episode_seed, policy_name=name, teacher_step=step,
+                                       env_step=frames, timings=self.seconds)
+        tick = time.perf_counter()
+        try:
+            self.writer.append(episode, info)
+        except OSError as exc:
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise CollectError(
+                    f"disk full while writing episode {index} to {str(self.path)!r}; the "
+                    f"partial episode was dropped and the {index} committed episodes are "
+                    "intact: free space and run again with --resume") from None
+            raise CollectError(f"writing episode {index} to {str(self.path)!r} failed: "
+                               f"{exc}") from None
+        self.seconds["write"] += time.perf_counter() - tick
+        self.last_return = float(episode.reward.sum())
+        return self.last_return
+
+    def _teacher_policy(self, explore: bool = True) -> Policy:
+        teacher, device = self.teacher, self.device
+        latent = None
+        previous = torch.zeros(1, self.env.action_dim, device=device)
+
+        def act(step: Step) -> np.ndarray:
+            nonlocal latent, previous
+            state = torch.as_tensor(step.state, device=device).float()[None]
+            first = torch.tensor([step.is_first], device=device)
+            action, latent = teacher.policy(state, latent, previous, first, explore=explore)
+            previous = action
+            return action[0].cpu().numpy()
+
+        return act
+
+    def _train(self) -> None:
+        c = self.config
+        due = c.updates_due(self.frames)
+        if int(self.teacher.step) >= due:
+            return
+        tick = time.perf_counter()
+        if self.replay is None:
+            self.replay = WindowSampler(self.path, SamplerConfig(
+                length=c.batch_length, batch_size=c.batch_size, keys=REPLAY_KEYS,
+                cache_bytes=0, seed=self.seed))
+            if self.replay_state is not None:
+                self.replay.rng_state = self.replay_state
+        else:
+            self.replay.refresh()
+        metrics: dict[str, list[float]] = {}
+        while int(self.teacher.step) < due:
+            batch = {k: torch.as_tensor(v, device=self.device)
+                     for k, v in self.replay.batch().items() if k in REPLAY_KEYS}
+            for k, v in self.teacher.train_step(batch).items():
+                metrics.setdefault(k, []).append(v)
+        self.train_metrics = {k: float(np.mean(v)) for k, v in metrics.items()}
+        self.seconds["learn"] += time.perf_counter() - tick
+
+    def _evaluate(self) -> None:
+        c = self.config
+        tick = time.perf_counter()
+        returns = []
+        for j in range(c.eval_episodes):
+            policy = (self._teacher_policy(explore=False) if self.frames >= c.prefill_frames
+                      else random_policy(self.env.action_dim, j))
+            step = self.eval_env.reset(seed=derived_seed(self.seed, 1 << 30, j),
+                                       dynamics=Dynamics())
+            total = 0.0
+            while not step.is_last:
+                step = self.eval_env.step(policy(step))
+                total += step.reward
+            returns.append(total)
+        self.eval_returns.append(float(np.mean(returns)))
+        self.evaluated_at = self.frames
+        while self.next_eval <= self.frames:
+            self.next_eval += c.eval_every
+        row = {"frames": self.frames, "updates": int(self.teacher.step),
+               "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
+               "episodes": len(returns), "wall_s": round(sum(self.seconds.values()), 1)}
+        _append_csv(self.folder / "eval.csv", row, tuple(row))
+        self.board.scalar("eval/return", row["return_mean"], self.frames)
+        self.seconds["eval"] += time.perf_counter() - tick
+        log.info("eval at %d frames: return %.1f", self.frames, self.eval_returns[-1])
+
+    def _checkpoint(self, final: bool = False) -> Path:
+        tick = time.perf_counter()
+        if self.frames >= self.next_snapshot:
+            while self.next_snapshot <= self.frames:
+                self.next_snapshot += self.config.snapshot_every
+            snapshot = True
+        else:
+            snapshot = False
+        extra = {"torch_rng": torch.get_rng_state().tolist(),
+                 "replay_rng": self.replay.rng_state if self.replay is not None
+                 else self.replay_state,
+                 "next_eval": self.next_eval, "next_snapshot": self.next_snapshot,
+                 "evaluated_at": self.evaluated_at,
+                 "eval_returns": self.eval_returns}
+        counters = {"frames": self.frames, "episodes": self.writer.n_episodes}
+        latest = save_teacher(self.folder / "latest.pt", self.teacher, counters, extra)
+        if snapshot:
+            save_teacher(self.folder / f"teacher-{self.frames:08d}.pt", self.teacher, counters,
+                         extra)
+        if final:
+            latest = save_teacher(self.folder / FINAL_TEACHER, self.teacher, counters, extra)
+        self.seconds["checkpoint"] += time.perf_counter() - tick
+        return latest
+
+    def _log_metrics(self, episode_return: float) -> None:
+        row = {"frames": self.frames, "episodes": self.writer.n_episodes,
+               "updates": int(self.teacher.step), "return": episode_return,
+               "wall_s": round(sum(self.seconds.values()), 2),
+               **{f"seconds_{k}": round(v, 3) for k, v in self.seconds.items()},
+               **self.train_metrics}
+        _append_csv(self.folder / "metrics.csv", row, METRIC_COLUMNS)
+        self.board.scalar("train/return", episode_return, self.frames)
+        for key, value in self.train_metrics.items():
+            self.board.scalar(f"teacher/{key}", value, self.frames)
+        self.train_metrics = {}
+
+
+def _append_csv(path: Path, row: dict[str, Any], columns: tuple[str, ...]) -> None:
+    """Append one row with fixed ``columns`` (missing values empty), header on first write."""
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, restval="", extrasaction="ignore")
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+class _Board:
+    """TensorBoard scalars when the ``tensorboard`` package is installed; otherwise nothing
+    (the CSV files are the record either way)."""
+
+    def __init__(self, folder: Path) -> None:
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            self._writer = None
+        else:
+            self._writer = SummaryWriter(str(folder / "tensorboard"))
+
+    def scalar(self, tag: str, value: float, step: int) -> None:
+        if self._writer is not None:
+            self._writer.add_scalar(tag, value, step)
+            self._writer.flush()
+
+
+def find_teacher(out: str | os.PathLike[str]) -> Path:
+    """The final teacher of the collector run in ``out`` (the one ``twist-distil`` uses by
+    default); an error lists the candidates when there are several or none."""
+    found = sorted((Path(out) / "collect").glob(f"*/{FINAL_TEACHER}"))
+    if len(found) != 1:
+        have = ", ".join(str(p) for p in found) or "none"
+        raise CollectError(f"expected one final teacher under {str(Path(out) / 'collect')!r}, "
+                           f"found {have}; name one explicitly")
+    read_checkpoint(found[0], kind="teacher")
+    return found[0]
+
+
+def stored_config(out: str | os.PathLike[str], shard: str) -> CollectConfig:
+    """The collect config a run in ``out`` was started with."""
+    data = json.loads((run_dir(out, shard) / "config.json").read_text())
+    return from_json(CollectConfig, data["collect"])
