@@ -15,8 +15,11 @@ err = Console(stderr=True)
 
 
 def run_app(app: typer.Typer, log_level: int = logging.WARNING) -> None:
-    """Run a Typer app; known errors become one ``error:`` line on stderr and exit code 2."""
-    logging.basicConfig(level=log_level, format="%(levelname)s %(name)s: %(message)s")
+    """Run a Typer app; known errors become one ``error:`` line on stderr and exit code 2.
+    ``log_level`` applies to twist's own loggers; other libraries log warnings only."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    for name in ("twist_data", "twist_models"):
+        logging.getLogger(name).setLevel(log_level)
     try:
         app()
     except TwistError as exc:

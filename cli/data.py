@@ -127,7 +127,7 @@ def verify(
 def export_video_cmd(
     dataset: DatasetArg,
     out_path: Annotated[Path, typer.Argument(metavar="OUT", help="Output .mp4 or .gif file.")],
-    episode: Annotated[int, typer.Option(help="Global episode index.")] = 0,
+    episode: Annotated[int, typer.Option(help="Global episode index (-1: the last).")] = 0,
     fps: Annotated[int, typer.Option(help="Frames per second.")] = 25,
     scale: Annotated[int, typer.Option(help="Pixel upscaling factor.")] = 4,
 ) -> None:

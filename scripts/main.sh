@@ -1,20 +1,25 @@
 #!/usr/bin/env bash
-# The main job on the embedded default task, cartpole-balance. Today: record random-policy
-# episodes with K=2 domain-randomised views, inspect, verify (including a pixel-exact
-# re-render), re-render under held-out DR, export, and draw a contact sheet.
-# (Teacher collection, distillation and evaluation join as they land.)
+# The main job on the embedded default task, cartpole-balance: train the state teacher with
+# the `quick` preset while writing the matching dataset D (K=2 domain-randomised views per
+# step), then inspect, verify (including a pixel-exact re-render), re-render under held-out
+# DR, export, and draw a contact sheet. Distillation and evaluation join as they land.
+# PRESET=tiny gives a smoke run of seconds; --resume continues an interrupted run.
 set -euo pipefail
 . "$(dirname "$0")/bootstrap.sh"
 OUT="${1:-runs/demo}"
 TASK="${TASK:-cartpole-balance}"
-rm -rf "$OUT/dataset" "$OUT/heldout"
-twist-data record "$TASK" "$OUT/dataset" --episodes 4 --dr train --views 2 --image-size 64
+PRESET="${PRESET:-quick}"
+RESUME=()
+if [[ -d "$OUT/dataset/collect" ]]; then RESUME=(--resume); fi
+twist-collect --task "$TASK" --preset "$PRESET" --out "$OUT/dataset" "${RESUME[@]}"
+rm -rf "$OUT/heldout"
 twist-data info "$OUT/dataset"
 twist-data episodes "$OUT/dataset" --csv "$OUT/episodes.csv"
 twist-data verify "$OUT/dataset" --rerender 20
 twist-data render "$OUT/dataset" "$OUT/heldout" --dr heldout --views 2
-twist-data export-video "$OUT/dataset" "$OUT/episode0.mp4" --episode 0
-twist-data export-video "$OUT/heldout" "$OUT/episode0-heldout.mp4" --episode 0
+twist-data export-video "$OUT/dataset" "$OUT/episode-last.mp4" --episode -1
+twist-data export-video "$OUT/heldout" "$OUT/episode-last-heldout.mp4" --episode -1
 twist-data export-hdf5 "$OUT/dataset" "$OUT/dataset.h5"
 twist-data contact-sheet "$TASK" "$OUT/contact-sheet.png"
+cp "$OUT/dataset/collect/collect-000/learning-curve.png" "$OUT/learning-curve.png"
 echo "main job done: results in $OUT"

@@ -93,6 +93,8 @@ def test_cli_errors_are_one_line_nonzero_and_change_nothing(fresh_dataset: Path,
         (("export-video", fresh_dataset, tmp_path / "v.avi"), "must end in .mp4 or .gif"),
         (("export-video", fresh_dataset, tmp_path / "v.mp4", "--episode", "99"),
          "dataset has 6 episodes; index 99 is out of range"),
+        (("export-video", fresh_dataset, tmp_path / "v.mp4", "--episode", "-7"),
+         "dataset has 6 episodes; index -7 is out of range"),
         (("synth", tmp_path / "s", "--steps", "1"), "steps must be >= 2, got 1"),
     ]
     for args, message in cases:

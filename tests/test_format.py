@@ -85,6 +85,15 @@ def test_every_array_round_trips(small_dataset: Path) -> None:
         assert row["return"] == pytest.approx(float(expected.reward.astype(np.float64).sum()))
 
 
+def test_negative_episode_indices_count_from_the_end(small_dataset: Path) -> None:
+    dataset = open_dataset(small_dataset)
+    n = dataset.n_episodes
+    for index in (-1, -n):
+        expected = dataset.episode(n + index)
+        np.testing.assert_array_equal(dataset.episode(index).state, expected.state)
+        assert dataset.episode_info(index) == dataset.episode_info(n + index)
+
+
 def test_plain_zarr_reads_what_datasets_md_describes(small_dataset: Path) -> None:
     """A reader with only zarr and the spec: commit record, episode_ends, data arrays."""
     shard = sorted(small_dataset.glob("*.zarr"))[1]

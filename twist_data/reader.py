@@ -340,11 +340,13 @@ class MatchingDataset:
         )
 
     def episode_location(self, index: int) -> tuple[int, int]:
-        """(shard number, episode within that shard) of global episode ``index``."""
-        if not 0 <= index < self.n_episodes:
+        """(shard number, episode within that shard) of global episode ``index``; negative
+        indices count from the end, as in Python (-1 is the last episode)."""
+        if not -self.n_episodes <= index < self.n_episodes:
             raise SamplerConfigError(
                 f"dataset has {self.n_episodes} episodes; index {index} is out of range"
             )
+        index %= self.n_episodes
         counts = np.cumsum([s.n_episodes for s in self.shards])
         shard = int(np.searchsorted(counts, index, side="right"))
         return shard, index - (int(counts[shard - 1]) if shard else 0)

@@ -1,7 +1,8 @@
 """Train the state teacher online and write the matching dataset D while it trains.
 
 One collector owns one shard of D and the run folder ``<out>/collect/<shard>/``:
-``config.json`` (the resolved configs), ``metrics.csv`` (one row per episode), ``eval.csv``,
+``config.json`` (the resolved configs), ``metrics.csv`` (one row per episode), ``eval.csv``
+and its plot ``learning-curve.png``,
 ``latest.pt`` (after every episode), ``teacher-<frames>.pt`` (every ``snapshot_every``
 frames) and ``teacher.pt`` (the final teacher, which ``twist-distil`` picks by default).
 
@@ -54,6 +55,7 @@ from twist_data.tasks import DEFAULT_TASK, Dynamics, Step, TaskEnv, task_spec
 from twist_data.writer import ShardWriter, shard_path
 from twist_models.checkpoint import read_checkpoint
 from twist_models.config import PRESETS, TeacherConfig, from_json, teacher_preset, to_json
+from twist_models.curves import plot_learning_curves
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 
 log = logging.getLogger(__name__)
@@ -232,10 +234,10 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
     teacher_config = config.teacher_config(env.state_dim, env.action_dim)
     torch_device = torch.device(device)
     with DRRenderer(config.task, dr_config, config.image_size, config.views) as renderer:
+        folder.mkdir(parents=True, exist_ok=True)
         if path.exists():
             writer = ShardWriter.resume(path)
         else:
-            folder.mkdir(parents=True, exist_ok=True)
             extra = {"collect": to_json(config), "teacher": to_json(teacher_config)}
             writer = ShardWriter.create(out, shard, simulated_spec(env, renderer, extra))
         with writer:
@@ -321,6 +323,7 @@ class _Run:
             self.next_eval = extra["next_eval"]
             self.next_snapshot = extra["next_snapshot"]
             self.evaluated_at = extra["evaluated_at"]
+            self.seconds.update(extra.get("seconds", {}))
             self.eval_returns = extra.get("eval_returns", [])
             log.info("resumed the teacher at update %d from %s", int(self.teacher.step), latest)
         else:
@@ -452,6 +455,9 @@ class _Run:
                "episodes": len(returns), "wall_s": round(sum(self.seconds.values()), 1)}
         _append_csv(self.folder / "eval.csv", row, tuple(row))
         self.board.scalar("eval/return", row["return_mean"], self.frames)
+        plot_learning_curves({f"{self.path.name} (seed {c.seed})": self.folder / "eval.csv"},
+                             self.folder / "learning-curve.png",
+                             f"{c.task}, {c.model} teacher on state, mode action")
         self.seconds["eval"] += time.perf_counter() - tick
         log.info("eval at %d frames: return %.1f", self.frames, self.eval_returns[-1])
 
@@ -467,7 +473,7 @@ class _Run:
                  "replay_rng": self.replay.rng_state if self.replay is not None
                  else self.replay_state,
                  "next_eval": self.next_eval, "next_snapshot": self.next_snapshot,
-                 "evaluated_at": self.evaluated_at,
+                 "evaluated_at": self.evaluated_at, "seconds": self.seconds,
                  "eval_returns": self.eval_returns}
         counters = {"frames": self.frames, "episodes": self.writer.n_episodes}
         latest = save_teacher(self.folder / "latest.pt", self.teacher, counters, extra)
