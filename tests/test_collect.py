@@ -156,6 +156,20 @@ def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path) -> N
         collect(blocker / "D", config)
 
 
+def test_behaviour_overrides_reach_the_teacher_config() -> None:
+    default = collect_preset("tiny").teacher_config(5, 1)
+    config = collect_preset("tiny", explore_noise=0.3, actor_entropy=1e-3,
+                            imag_starts=7).teacher_config(5, 1)
+    assert (config.explore_noise, config.actor_critic.entropy, config.actor_critic.imag_starts) \
+        == (0.3, 1e-3, 7)
+    assert (default.explore_noise, default.actor_critic.entropy) == (0.0, 1e-4)
+    assert config.world_model == default.world_model
+    # DreamerV2's train ratio: nothing before prefill, then pretrain + 1 per train_every steps.
+    quick = collect_preset("quick")
+    assert quick.updates_due(quick.prefill_frames - 1) == 0
+    assert quick.updates_due(quick.prefill_frames + 10 * quick.action_repeat * 5) == 110
+
+
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:
     done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--task", "nope"],
                           capture_output=True, text=True)
