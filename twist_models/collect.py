@@ -337,7 +337,7 @@ class _Run:
         else:
             torch.manual_seed(self.seed)
             self.teacher = Teacher(teacher_config)
-        self.teacher.to(self.device)
+        self.teacher.to_device(self.device)
 
     @property
     def frames(self) -> int:

@@ -36,6 +36,18 @@ class Teacher(nn.Module):
                                            weight_decay=config.optim.weight_decay)
         self.register_buffer("step", torch.zeros((), dtype=torch.int64))
 
+    def to_device(self, device: torch.device | str) -> Teacher:
+        """Move weights and optimiser moments to ``device``. (``Module.to`` alone leaves the
+        moments of a restored checkpoint on the CPU; Adam's scalar step counters stay there
+        by design.)"""
+        self.to(device)
+        for optimiser in self.optimisers().values():
+            for state in optimiser.state.values():
+                for key, value in state.items():
+                    if torch.is_tensor(value) and value.dim() > 0:
+                        state[key] = value.to(device)
+        return self
+
     def optimisers(self) -> dict[str, torch.optim.Optimizer]:
         return {"model": self.model_opt, "actor": self.actor_critic.actor_opt,
                 "critic": self.actor_critic.critic_opt}
