@@ -27,31 +27,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from twist_data.randomisation import dr_preset
 from twist_data.render import DRRenderer
 from twist_data.rollout import random_policy, record_episode, simulated_spec
 from twist_data.tasks import TaskEnv
 from twist_data.writer import ShardWriter
-from twist_models.collect import collect_preset
+from twist_models.collect import collect_preset, teacher_policy
+from twist_models.teacher import Teacher
 
 TARGET = 250.0
-
-
-def teacher_policy(preset: str, env: TaskEnv):
-    from twist_models.teacher import Teacher
-
-    teacher = Teacher(collect_preset(preset).teacher_config(env.state_dim, env.action_dim))
-    latent, previous = None, torch.zeros(1, env.action_dim)
-
-    def act(step):
-        nonlocal latent, previous
-        state = torch.as_tensor(step.state)[None]
-        previous, latent = teacher.policy(state, latent, previous, torch.tensor([step.is_first]))
-        return previous[0].numpy()
-
-    return act
 
 
 def collection_slice(task: str, episodes: int, policy_name: str, preset: str,
@@ -62,8 +47,11 @@ def collection_slice(task: str, episodes: int, policy_name: str, preset: str,
         sampler = renderer.sampler(0)
         shutil.rmtree(folder, ignore_errors=True)
         # One policy for all episodes: the teacher's latent resets itself at is_first.
-        policy = (teacher_policy(preset, env) if policy_name == "teacher"
-                  else random_policy(env.action_dim, 0))
+        if policy_name == "teacher":
+            config = collect_preset(preset).teacher_config(env.state_dim, env.action_dim)
+            policy = teacher_policy(Teacher(config), env.action_dim)
+        else:
+            policy = random_policy(env.action_dim, 0)
         with ShardWriter.create(folder, "bench", simulated_spec(env, renderer)) as writer:
             steps, start = 0, time.perf_counter()
             for i in range(episodes):

@@ -47,14 +47,22 @@ import torch
 
 from twist_data.errors import ConfigError, TwistError
 from twist_data.randomisation import DR_PRESETS, derived_seed, dr_preset
-from twist_data.reader import open_dataset
+from twist_data.reader import ShardReader, open_dataset
 from twist_data.render import DRRenderer
 from twist_data.rollout import Policy, random_policy, record_episode, simulated_spec
 from twist_data.sampler import SamplerConfig, WindowSampler
 from twist_data.tasks import DEFAULT_TASK, Dynamics, Step, TaskEnv, task_spec
 from twist_data.writer import ShardWriter, shard_path
 from twist_models.checkpoint import read_checkpoint
-from twist_models.config import PRESETS, TeacherConfig, from_json, teacher_preset, to_json
+from twist_models.config import (
+    PRESETS,
+    TeacherConfig,
+    from_json,
+    require_non_negative,
+    require_positive,
+    teacher_preset,
+    to_json,
+)
 from twist_models.curves import plot_learning_curves
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 
@@ -129,13 +137,9 @@ class CollectConfig:
             raise ConfigError(f"unknown model preset {self.model!r}; valid: {', '.join(PRESETS)}")
         if self.dr not in DR_PRESETS:
             raise ConfigError(f"unknown DR preset {self.dr!r}; valid: {', '.join(DR_PRESETS)}")
-        for name in ("frames", "views", "image_size", "action_repeat", "train_every",
-                     "batch_size", "batch_length", "eval_every", "snapshot_every"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("prefill_frames", "pretrain_updates", "eval_episodes"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
+        require_positive(self, "frames", "views", "image_size", "action_repeat", "train_every",
+                         "batch_size", "batch_length", "eval_every", "snapshot_every")
+        require_non_negative(self, "prefill_frames", "pretrain_updates", "eval_episodes")
         if self.max_steps is not None and self.max_steps < self.batch_length:
             raise ConfigError(f"max_steps {self.max_steps} is shorter than one replay window "
                               f"(batch_length {self.batch_length})")
@@ -223,6 +227,24 @@ class CollectSummary:
 
 
 # -- the collector ----------------------------------------------------------------------------
+def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str = "cpu",
+                   explore: bool = True) -> Policy:
+    """The teacher as a rollout policy on privileged state: it filters its latent across the
+    steps of an episode (reset at ``is_first``) and returns actions as numpy arrays."""
+    latent = None
+    previous = torch.zeros(1, action_dim, device=device)
+
+    def act(step: Step) -> np.ndarray:
+        nonlocal latent, previous
+        state = torch.as_tensor(step.state, device=device).float()[None]
+        first = torch.tensor([step.is_first], device=device)
+        action, latent = teacher.policy(state, latent, previous, first, explore=explore)
+        previous = action
+        return action[0].cpu().numpy()
+
+    return act
+
+
 def run_dir(out: str | os.PathLike[str], shard: str) -> Path:
     return Path(out) / "collect" / shard
 
@@ -371,7 +393,7 @@ class _Run:
             last_return=self.last_return,
             best_eval_return=max(self.eval_returns) if self.eval_returns else None,
             last_eval_return=self.eval_returns[-1] if self.eval_returns else None,
-            dataset_bytes=sum(f.stat().st_size for f in self.path.rglob("*") if f.is_file()),
+            dataset_bytes=ShardReader(self.path).disk_bytes(),
             seconds={k: round(v, 2) for k, v in self.seconds.items()})
         (self.folder / "summary.json").write_text(json.dumps(summary.to_json(), indent=2))
         return summary
@@ -383,7 +405,8 @@ class _Run:
         if frames < c.prefill_frames:
             policy, name, step = random_policy(self.env.action_dim, episode_seed), "random", -1
         else:
-            policy, name, step = self._teacher_policy(), "teacher", int(self.teacher.step)
+            policy = teacher_policy(self.teacher, self.env.action_dim, self.device)
+            name, step = "teacher", int(self.teacher.step)
         episode, info = record_episode(self.env, self.renderer, self.dr_sampler, policy,
                                        seed=episode_seed, policy_name=name, teacher_step=step,
                                        env_step=frames, timings=self.seconds)
@@ -401,21 +424,6 @@ class _Run:
         self.seconds["write"] += time.perf_counter() - tick
         self.last_return = float(episode.reward.sum())
         return self.last_return
-
-    def _teacher_policy(self, explore: bool = True) -> Policy:
-        teacher, device = self.teacher, self.device
-        latent = None
-        previous = torch.zeros(1, self.env.action_dim, device=device)
-
-        def act(step: Step) -> np.ndarray:
-            nonlocal latent, previous
-            state = torch.as_tensor(step.state, device=device).float()[None]
-            first = torch.tensor([step.is_first], device=device)
-            action, latent = teacher.policy(state, latent, previous, first, explore=explore)
-            previous = action
-            return action[0].cpu().numpy()
-
-        return act
 
     def _train(self) -> None:
         c = self.config
@@ -445,7 +453,8 @@ class _Run:
         tick = time.perf_counter()
         returns = []
         for j in range(c.eval_episodes):
-            policy = (self._teacher_policy(explore=False) if self.frames >= c.prefill_frames
+            policy = (teacher_policy(self.teacher, self.env.action_dim, self.device,
+                                     explore=False) if self.frames >= c.prefill_frames
                       else random_policy(self.env.action_dim, j))
             step = self.eval_env.reset(seed=derived_seed(self.seed, 1 << 30, j),
                                        dynamics=Dynamics())

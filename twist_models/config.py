@@ -18,11 +18,20 @@ from twist_data.errors import ConfigError
 T = TypeVar("T")
 
 
-def _positive(obj: object, *names: str) -> None:
+def require_positive(obj: object, *names: str) -> None:
+    """Raise ConfigError naming the first field of ``obj`` among ``names`` that is not > 0."""
     for name in names:
         value = getattr(obj, name)
         if not value > 0:
             raise ConfigError(f"{type(obj).__name__}.{name} must be > 0, got {value}")
+
+
+def require_non_negative(obj: object, *names: str) -> None:
+    """Raise ConfigError naming the first field of ``obj`` among ``names`` that is < 0."""
+    for name in names:
+        value = getattr(obj, name)
+        if value < 0:
+            raise ConfigError(f"{type(obj).__name__}.{name} must be >= 0, got {value}")
 
 
 @dataclass(frozen=True)
@@ -43,7 +52,7 @@ class RSSMConfig:
     """KL values below this are not penalised (applied to the batch mean, as DreamerV2)."""
 
     def __post_init__(self) -> None:
-        _positive(self, "deter", "hidden", "stoch", "classes")
+        require_positive(self, "deter", "hidden", "stoch", "classes")
         if not 0.0 <= self.kl_balance <= 1.0 or self.free_nats < 0:
             raise ConfigError(f"kl_balance must be in [0, 1] and free_nats >= 0, got "
                               f"{self.kl_balance} and {self.free_nats}")
@@ -64,7 +73,7 @@ class MLPConfig:
     """Units per hidden layer."""
 
     def __post_init__(self) -> None:
-        _positive(self, "layers", "units")
+        require_positive(self, "layers", "units")
 
 
 @dataclass(frozen=True)
@@ -83,7 +92,7 @@ class CNNConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder_kernels", tuple(self.encoder_kernels))
         object.__setattr__(self, "decoder_kernels", tuple(self.decoder_kernels))
-        _positive(self, "depth", "image_size")
+        require_positive(self, "depth", "image_size")
 
 
 @dataclass(frozen=True)
@@ -115,7 +124,7 @@ class ActorCriticConfig:
     as DreamerV2. Imagination is ~85% of a CPU teacher update, so CPU presets start from fewer."""
 
     def __post_init__(self) -> None:
-        _positive(self, "horizon", "slow_target_every", "actor_lr", "critic_lr", "min_std")
+        require_positive(self, "horizon", "slow_target_every", "actor_lr", "critic_lr", "min_std")
         if self.imag_starts < 0:
             raise ConfigError(f"imag_starts must be >= 0 (0 = every state), got {self.imag_starts}")
         if not 0 < self.discount <= 1 or not 0 <= self.lambda_ <= 1:
@@ -135,7 +144,7 @@ class OptimConfig:
     """Decoupled weight decay (AdamW), as DreamerV2."""
 
     def __post_init__(self) -> None:
-        _positive(self, "eps", "grad_clip")
+        require_positive(self, "eps", "grad_clip")
 
 
 @dataclass(frozen=True)
@@ -166,9 +175,9 @@ class WorldModelConfig:
     def __post_init__(self) -> None:
         if self.obs not in ("state", "image"):
             raise ConfigError(f"obs must be 'state' or 'image', got {self.obs!r}")
-        _positive(self, "action_dim", "model_lr")
+        require_positive(self, "action_dim", "model_lr")
         if self.obs == "state":
-            _positive(self, "state_dim")
+            require_positive(self, "state_dim")
 
 
 @dataclass(frozen=True)
