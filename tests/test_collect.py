@@ -26,10 +26,9 @@ from twist_models.collect import (
     CollectError,
     collect,
     collect_preset,
-    find_teacher,
     shard_seed,
 )
-from twist_models.teacher import load_teacher
+from twist_models.teacher import find_teacher, load_teacher
 
 pytestmark = pytest.mark.usefixtures("gl")
 COLLECT = [sys.executable, "-m", "twist_cli.collect"]

@@ -30,6 +30,7 @@ from twist_data.schema import step_arrays
 
 log = logging.getLogger(__name__)
 
+SPLITS = ("all", "train", "heldout")
 DEFAULT_KEYS = ("image", "state", "action", "reward", "discount", "is_first", "is_last",
                 "is_terminal")
 
@@ -52,6 +53,11 @@ class SamplerConfig:
     """Budget of the decoded-frame arena per sampler (per DataLoader worker); 0 disables it."""
     refresh_every: int = 0
     """Re-read the dataset for new commits every this many batches; 0: only on refresh()."""
+    holdout_every: int = 0
+    """Every n-th episode (global index % n == n - 1) is held out; 0: none. The split is
+    stable as a dataset grows, so held-out episodes stay held out."""
+    split: str = "all"
+    """Episodes windows come from: ``all``, ``train`` (not held out) or ``heldout``."""
 
     def __post_init__(self) -> None:
         problems = []
@@ -63,6 +69,11 @@ class SamplerConfig:
             problems.append(f"view index must be >= 0, got {self.view}")
         if self.cache_bytes < 0 or self.refresh_every < 0:
             problems.append("cache_bytes and refresh_every must be >= 0")
+        if self.split not in SPLITS:
+            problems.append(f"split must be one of {', '.join(SPLITS)}, got {self.split!r}")
+        elif self.split != "all" and self.holdout_every < 2:
+            problems.append(f"split {self.split!r} needs holdout_every >= 2, got "
+                            f"{self.holdout_every}")
         if len(set(self.keys)) != len(self.keys) or not self.keys:
             problems.append(f"keys must be non-empty and unique, got {self.keys}")
         if problems:
@@ -167,13 +178,20 @@ class WindowSampler:
 
     def _reindex(self) -> None:
         lengths = self.dataset.episode_lengths
-        valid = np.maximum(lengths - self.config.length + 1, 0)
+        cfg = self.config
+        valid = np.maximum(lengths - cfg.length + 1, 0)
+        where = ""
+        if cfg.split != "all":
+            held = np.arange(lengths.size) % cfg.holdout_every == cfg.holdout_every - 1
+            chosen = held if cfg.split == "heldout" else ~held
+            valid, lengths = np.where(chosen, valid, 0), lengths[chosen]
+            where = f" of the {cfg.split} split ({lengths.size} episodes)"
         self._cum_valid = np.cumsum(valid)
         self.total_windows = int(self._cum_valid[-1]) if valid.size else 0
         if self.total_windows == 0:
             longest = int(lengths.max()) if lengths.size else 0
             raise SamplerConfigError(
-                f"window length {self.config.length} is longer than every episode "
+                f"window length {cfg.length} is longer than every episode{where} "
                 f"(the longest has {longest} steps)"
             )
         if self.total_windows < self.n_streams:

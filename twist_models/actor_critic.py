@@ -1,4 +1,5 @@
-"""Actor-critic in imagination (DreamerV2, ``actor_grad: dynamics`` for continuous actions)."""
+"""Actor-critic in imagination: DreamerV2 (``actor_grad: dynamics`` for continuous actions),
+optionally with DreamerV3's score-function actor and return normalisation."""
 
 from __future__ import annotations
 
@@ -11,10 +12,12 @@ from torch import nn
 from twist_models.config import ActorCriticConfig, OptimConfig
 from twist_models.losses import gaussian_nll, lambda_returns
 from twist_models.networks import MLP
-from twist_models.rssm import State
+from twist_models.rssm import RSSM, State
 from twist_models.world_model import WorldModel
 
 _SQRT2 = math.sqrt(2.0)
+#: DreamerV3's decay of the return-range EMA.
+RETURN_RANGE_DECAY = 0.99
 
 
 def _normal_cdf(x: torch.Tensor) -> torch.Tensor:
@@ -86,6 +89,8 @@ class ActorCritic(nn.Module):
         self.critic_opt = torch.optim.AdamW(self.critic.parameters(), config.critic_lr,
                                             eps=optim.eps, weight_decay=optim.weight_decay)
         self.register_buffer("updates", torch.zeros((), dtype=torch.int64))
+        # EMA of the (5%, 95%) quantiles of imagined returns, for return_norm.
+        self.register_buffer("return_range", torch.zeros(2))
 
     def value(self, feature: torch.Tensor, target: bool = False) -> torch.Tensor:
         return (self.target_critic if target else self.critic)(feature).squeeze(-1)
@@ -93,7 +98,7 @@ class ActorCritic(nn.Module):
     def train_step(self, world_model: WorldModel, start: State) -> dict[str, torch.Tensor]:
         """One actor and one critic update from imagined rollouts of the ``start`` states
         ({k: [N, ...]}, detached; all of them, or ``imag_starts`` drawn at random). The world
-        model is frozen but differentiated through."""
+        model is frozen (and differentiated through with ``actor_grad=dynamics``)."""
         c = self.config
         n = next(iter(start.values())).shape[0]
         if 0 < c.imag_starts < n:
@@ -103,18 +108,12 @@ class ActorCritic(nn.Module):
         frozen = [p for p in world_model.parameters() if p.requires_grad]
         for p in frozen:
             p.requires_grad_(False)
-        policies: list[TruncatedNormal] = []
-
-        def act(feature: torch.Tensor) -> torch.Tensor:
-            # imagine() feeds the actor detached features, so these distributions are exactly
-            # those DreamerV2 recomputes for the entropy bonus: keeping them saves a second
-            # actor pass over every imagined state.
-            policies.append(self.actor(feature))
-            return policies[-1].rsample()
-
         try:
-            states, _ = rssm.imagine(start, c.horizon, policy=act)
-            feature = rssm.feature(states)  # [N, H+1, F]
+            if c.actor_grad == "dynamics":
+                feature, policies, _ = self._imagine(rssm, start, differentiable=True)
+            else:
+                with torch.no_grad():
+                    feature, _, actions = self._imagine(rssm, start, differentiable=False)
             # Heads run on the contiguous [N, H+1, F] layout (a transposed input sends
             # nn.Linear down a slow batched-matmul path); their [N, H+1] outputs go time first.
             reward = world_model.reward(feature).T
@@ -125,8 +124,17 @@ class ActorCritic(nn.Module):
             returns = lambda_returns(reward[1:], value[:-1], pcont[1:], value[-1], c.lambda_)
             weight = torch.cumprod(torch.cat([torch.ones_like(pcont[:1]), pcont[1:-1]], 0), 0)
             weight = weight.detach()
-            entropy = torch.stack([p.entropy().sum(-1) for p in policies], 0)  # [H, N]
-            actor_loss = -(weight * (returns + c.entropy * entropy)).mean()
+            scale = self._return_scale(returns.detach())
+            if c.actor_grad == "dynamics":
+                entropy = torch.stack([p.entropy().sum(-1) for p in policies], 0)  # [H, N]
+                objective = returns / scale
+            else:
+                policy = self.actor(feature[:, :-1])  # one batched pass over [N, H, F]
+                entropy = policy.entropy().sum(-1).T
+                log_prob = policy.log_prob(actions).sum(-1).T  # [H, N]
+                advantage = (returns - self.value(feature[:, :-1]).T).detach() / scale
+                objective = log_prob * advantage
+            actor_loss = -(weight * (objective + c.entropy * entropy)).mean()
         finally:
             for p in frozen:
                 p.requires_grad_(True)
@@ -141,6 +149,35 @@ class ActorCritic(nn.Module):
                 "imagined_return": returns[0].mean().detach(),
                 "actor_entropy": entropy.mean().detach(),
                 "imagined_reward": reward[1:].mean().detach()}
+
+    def _imagine(self, rssm: RSSM, start: State, differentiable: bool
+                 ) -> tuple[torch.Tensor, list[TruncatedNormal], torch.Tensor]:
+        """Roll the actor out in the model: (features [N, H+1, F], the actor's distribution
+        at each of the H decision states, actions [N, H, A])."""
+        policies: list[TruncatedNormal] = []
+
+        def act(feature: torch.Tensor) -> torch.Tensor:
+            # imagine() feeds the actor detached features, so these distributions are exactly
+            # those DreamerV2 recomputes for the entropy bonus: keeping them saves a second
+            # actor pass over every imagined state.
+            policies.append(self.actor(feature))
+            action = policies[-1].rsample()
+            return action if differentiable else action.detach()
+
+        states, actions = rssm.imagine(start, self.config.horizon, policy=act)
+        return rssm.feature(states), policies, actions
+
+    def _return_scale(self, returns: torch.Tensor) -> torch.Tensor | float:
+        """max(1, EMA of the 5-95% percentile range of ``returns``) with return_norm, else 1."""
+        if not self.config.return_norm:
+            return 1.0
+        quantiles = torch.quantile(returns.flatten().float(),
+                                   torch.tensor([0.05, 0.95], device=returns.device))
+        if int(self.updates) == 0:
+            self.return_range.copy_(quantiles)
+        else:
+            self.return_range.lerp_(quantiles, 1 - RETURN_RANGE_DECAY)
+        return (self.return_range[1] - self.return_range[0]).clamp_min(1.0)
 
     def _step(self, optimiser: torch.optim.Optimizer, loss: torch.Tensor, module: nn.Module) -> None:
         optimiser.zero_grad(set_to_none=True)

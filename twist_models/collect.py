@@ -29,7 +29,6 @@ Decisions (the README's "twist-collect" section says more):
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import errno
 import json
@@ -53,7 +52,6 @@ from twist_data.rollout import Policy, random_policy, record_episode, simulated_
 from twist_data.sampler import SamplerConfig, WindowSampler
 from twist_data.tasks import DEFAULT_TASK, Dynamics, Step, TaskEnv, task_spec
 from twist_data.writer import ShardWriter, shard_path
-from twist_models.checkpoint import read_checkpoint
 from twist_models.config import (
     PRESETS,
     TeacherConfig,
@@ -64,12 +62,12 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import plot_learning_curves
-from twist_models.teacher import Teacher, load_teacher, save_teacher
+from twist_models.runlog import Board, append_csv
+from twist_models.teacher import FINAL_TEACHER, Teacher, load_teacher, save_teacher
 
 log = logging.getLogger(__name__)
 
 REPLAY_KEYS = ("state", "action", "reward", "is_first", "is_terminal")
-FINAL_TEACHER = "teacher.pt"
 TIMED_PARTS = ("physics", "render", "policy", "write", "learn", "eval", "checkpoint")
 #: metrics.csv columns; training metrics are means over the updates after each episode.
 METRIC_COLUMNS = (
@@ -130,6 +128,12 @@ class CollectConfig:
     """Std of Gaussian noise added to the teacher's sampled actions while collecting."""
     actor_entropy: float | None = None
     """Override of the actor's entropy bonus (DreamerV2: 1e-4); None keeps the preset's."""
+    actor_grad: str | None = None
+    """Override of the actor's gradient (``dynamics``/``reinforce``); None keeps the preset's."""
+    return_norm: bool | None = None
+    """Override of DreamerV3's return normalisation; None keeps the preset's."""
+    model_lr: float | None = None
+    """Override of the world model's learning rate; None keeps the preset's."""
 
     def __post_init__(self) -> None:
         task_spec(self.task)  # raises UnknownTaskError naming the valid tasks
@@ -147,9 +151,13 @@ class CollectConfig:
     def teacher_config(self, state_dim: int, action_dim: int) -> TeacherConfig:
         config = teacher_preset(self.model, state_dim, action_dim)
         behaviour = {k: v for k, v in (("imag_starts", self.imag_starts),
-                                       ("entropy", self.actor_entropy)) if v is not None}
+                                       ("entropy", self.actor_entropy),
+                                       ("actor_grad", self.actor_grad),
+                                       ("return_norm", self.return_norm)) if v is not None}
+        model = {} if self.model_lr is None else {"model_lr": self.model_lr}
         return dataclasses.replace(
             config, explore_noise=self.explore_noise,
+            world_model=dataclasses.replace(config.world_model, **model),
             actor_critic=dataclasses.replace(config.actor_critic, **behaviour))
 
     def updates_due(self, frames: int) -> int:
@@ -333,7 +341,7 @@ class _Run:
         self.train_metrics: dict[str, float] = {}
         self.eval_returns: list[float] = []
         self.last_return: float | None = None
-        self.board = _Board(folder)
+        self.board = Board(folder)
         self._load_or_create_teacher(teacher_config)
         (folder / "config.json").write_text(json.dumps(
             {"collect": to_json(config), "teacher": to_json(teacher_config),
@@ -470,7 +478,7 @@ class _Run:
         row = {"frames": self.frames, "updates": int(self.teacher.step),
                "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
                "episodes": len(returns), "wall_s": round(sum(self.seconds.values()), 1)}
-        _append_csv(self.folder / "eval.csv", row, tuple(row))
+        append_csv(self.folder / "eval.csv", row, tuple(row))
         self.board.scalar("eval/return", row["return_mean"], self.frames)
         plot_learning_curves({f"{self.path.name} (seed {c.seed})": self.folder / "eval.csv"},
                              self.folder / "learning-curve.png",
@@ -508,51 +516,11 @@ class _Run:
                "wall_s": round(sum(self.seconds.values()), 2),
                **{f"seconds_{k}": round(v, 3) for k, v in self.seconds.items()},
                **self.train_metrics}
-        _append_csv(self.folder / "metrics.csv", row, METRIC_COLUMNS)
+        append_csv(self.folder / "metrics.csv", row, METRIC_COLUMNS)
         self.board.scalar("train/return", episode_return, self.frames)
         for key, value in self.train_metrics.items():
             self.board.scalar(f"teacher/{key}", value, self.frames)
         self.train_metrics = {}
-
-
-def _append_csv(path: Path, row: dict[str, Any], columns: tuple[str, ...]) -> None:
-    """Append one row with fixed ``columns`` (missing values empty), header on first write."""
-    new = not path.exists()
-    with path.open("a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns, restval="", extrasaction="ignore")
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
-
-
-class _Board:
-    """TensorBoard scalars when the ``tensorboard`` package is installed; otherwise nothing
-    (the CSV files are the record either way)."""
-
-    def __init__(self, folder: Path) -> None:
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-        except ImportError:
-            self._writer = None
-        else:
-            self._writer = SummaryWriter(str(folder / "tensorboard"))
-
-    def scalar(self, tag: str, value: float, step: int) -> None:
-        if self._writer is not None:
-            self._writer.add_scalar(tag, value, step)
-            self._writer.flush()
-
-
-def find_teacher(out: str | os.PathLike[str]) -> Path:
-    """The final teacher of the collector run in ``out`` (the one ``twist-distil`` uses by
-    default); an error lists the candidates when there are several or none."""
-    found = sorted((Path(out) / "collect").glob(f"*/{FINAL_TEACHER}"))
-    if len(found) != 1:
-        have = ", ".join(str(p) for p in found) or "none"
-        raise CollectError(f"expected one final teacher under {str(Path(out) / 'collect')!r}, "
-                           f"found {have}; name one explicitly")
-    read_checkpoint(found[0], kind="teacher")
-    return found[0]
 
 
 def stored_config(out: str | os.PathLike[str], shard: str) -> CollectConfig:

@@ -95,6 +95,9 @@ class CNNConfig:
         require_positive(self, "depth", "image_size")
 
 
+ACTOR_GRADS = ("dynamics", "reinforce")
+
+
 @dataclass(frozen=True)
 class ActorCriticConfig:
     """Behaviour learning in imagination."""
@@ -122,9 +125,18 @@ class ActorCriticConfig:
     imag_starts: int = 0
     """Posterior states (drawn at random from the batch) that start imagination; 0 = all B*L,
     as DreamerV2. Imagination is ~85% of a CPU teacher update, so CPU presets start from fewer."""
+    actor_grad: str = "dynamics"
+    """``dynamics``: backpropagate returns through the world model (DreamerV2 on DMC);
+    ``reinforce``: score-function gradient with the critic as baseline (DreamerV3)."""
+    return_norm: bool = False
+    """Divide the actor's objective by max(1, EMA of the 5-95% range of returns) (DreamerV3),
+    which keeps the actor's step size independent of the task's reward scale."""
 
     def __post_init__(self) -> None:
         require_positive(self, "horizon", "slow_target_every", "actor_lr", "critic_lr", "min_std")
+        if self.actor_grad not in ACTOR_GRADS:
+            raise ConfigError(f"actor_grad must be one of {', '.join(ACTOR_GRADS)}, "
+                              f"got {self.actor_grad!r}")
         if self.imag_starts < 0:
             raise ConfigError(f"imag_starts must be >= 0 (0 = every state), got {self.imag_starts}")
         if not 0 < self.discount <= 1 or not 0 <= self.lambda_ <= 1:
@@ -201,6 +213,32 @@ class TeacherConfig:
             raise ConfigError(f"explore_noise must be >= 0, got {self.explore_noise}")
 
 
+@dataclass(frozen=True)
+class StudentConfig:
+    """The vision student: a CNN encoder and an RSSM of the teacher's sizes. It has no decoder
+    or heads: it learns only by matching the teacher's latents (Eq. 3 and 4)."""
+
+    rssm: RSSMConfig = field(default_factory=RSSMConfig)
+    """RSSM sizes; deter, stoch and classes must be the teacher's (its actor reads them)."""
+    action_dim: int = 1
+    """Length of the action vector."""
+    cnn: CNNConfig = field(default_factory=CNNConfig)
+    """Image encoder (its image_size is the dataset's)."""
+
+    def __post_init__(self) -> None:
+        require_positive(self, "action_dim")
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """A deployable image agent: the student's encoder and RSSM plus the teacher's actor."""
+
+    student: StudentConfig = field(default_factory=StudentConfig)
+    """The distilled student."""
+    actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
+    """The teacher's behaviour config (its actor network and minimum std are used)."""
+
+
 def _tiny_mlp() -> MLPConfig:
     return MLPConfig(layers=2, units=32)
 
@@ -230,6 +268,15 @@ def teacher_preset(name: str, state_dim: int, action_dim: int) -> TeacherConfig:
                                    **PRESETS[name])
     return TeacherConfig(world_model=world_model,
                          actor_critic=ActorCriticConfig(**_AC_PRESETS[name]))
+
+
+def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64) -> StudentConfig:
+    """The student of size preset ``name`` (its CNN) for ``teacher``, whose RSSM it copies."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
+    cnn = dataclasses.replace(PRESETS[name].get("cnn", CNNConfig()), image_size=image_size)
+    return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,
+                         cnn=cnn)
 
 
 def to_json(config: Any) -> dict[str, Any]:

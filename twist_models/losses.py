@@ -55,3 +55,40 @@ def gaussian_nll(mean: torch.Tensor, target: torch.Tensor, event_dims: int = 1) 
     dimensions: [..., *event] -> [...]."""
     nll = 0.5 * (mean - target) ** 2 + 0.5 * math.log(2 * math.pi)
     return nll.sum(tuple(range(-event_dims, 0))) if event_dims else nll
+
+
+# -- TWIST distillation (the teacher's tensors are targets: no gradient reaches them) ------------
+def distillation_loss(student_post: dict[str, torch.Tensor], student_prior_logits: torch.Tensor,
+                      teacher_post: dict[str, torch.Tensor], teacher_prior_logits: torch.Tensor
+                      ) -> dict[str, torch.Tensor]:
+    """Eq. 3 of TWIST on windows of data, each term averaged over the batch and the window.
+
+    ``*_post``: the posterior states of each model's filter over the same windows,
+    ``deter`` [B, L, D] and ``logits`` [B, L, S, C]; ``*_prior_logits`` [B, L, S, C]: each
+    model's prior p(z_t | h_t) at its own h_t. Returns {``h``: ||h_teacher - h_student||^2
+    (summed over D), ``prior_kl``: KL(p_student || p_teacher), ``post_kl``:
+    KL(q_student || q_teacher)}, all []. The paper sums over t; the mean makes the weights
+    independent of L.
+    """
+    return {
+        "h": ((student_post["deter"] - teacher_post["deter"].detach()) ** 2).sum(-1).mean(),
+        "prior_kl": categorical_kl(student_prior_logits, teacher_prior_logits.detach()).mean(),
+        "post_kl": categorical_kl(student_post["logits"],
+                                  teacher_post["logits"].detach()).mean(),
+    }
+
+
+def imagined_distillation_loss(student: dict[str, torch.Tensor],
+                               teacher: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Eq. 4 of TWIST along imagined rollouts that replay the same actions.
+
+    ``student``/``teacher``: prior states ``deter`` [N, H+1, D] and ``logits``
+    [N, H+1, S, C], index 0 being the posterior state imagination started from (Eq. 3
+    already matches it, so it is left out). Returns {``h``: ||h_teacher - h_student||^2,
+    ``prior_kl``: KL(p_student || p_teacher)}, each averaged over N and the H imagined steps.
+    """
+    return {
+        "h": ((student["deter"][:, 1:] - teacher["deter"][:, 1:].detach()) ** 2).sum(-1).mean(),
+        "prior_kl": categorical_kl(student["logits"][:, 1:],
+                                   teacher["logits"][:, 1:].detach()).mean(),
+    }

@@ -24,15 +24,20 @@ State = dict[str, torch.Tensor]
 Policy = Callable[[torch.Tensor], torch.Tensor]
 
 
-def sample_one_hot(logits: torch.Tensor) -> torch.Tensor:
+def sample_one_hot(logits: torch.Tensor, uniform: torch.Tensor | None = None) -> torch.Tensor:
     """Straight-through one-hot sample of categorical ``logits`` [..., C]: the forward value is
-    a one-hot sample, the gradient is that of the probabilities."""
+    a one-hot sample, the gradient is that of the probabilities.
+
+    ``uniform`` [..., 1] in [0, 1) is the draw to use (fresh when None). Two models given the
+    same draws sample the same class wherever their distributions agree, which is how teacher
+    and student share their samples in distillation."""
     probs = F.softmax(logits, -1)
     # Inverse-CDF sampling: the class is the number of cumulative probabilities below a uniform
     # draw. An order of magnitude faster on CPU than torch.multinomial, whose exponential noise
     # dominated the imagination loop (21 ms vs 1.5 ms for 800 x 32 x 32); the clamp absorbs a
     # last cumulative probability that rounds below 1.
-    uniform = torch.rand(*probs.shape[:-1], 1, device=probs.device, dtype=probs.dtype)
+    if uniform is None:
+        uniform = torch.rand(*probs.shape[:-1], 1, device=probs.device, dtype=probs.dtype)
     below = probs.detach().cumsum(-1) < uniform
     index = below.sum(-1).clamp_max(probs.shape[-1] - 1)
     sample = F.one_hot(index, probs.shape[-1]).to(probs.dtype)
@@ -77,9 +82,11 @@ class RSSM(nn.Module):
         return raw.unflatten(-1, (self.config.stoch, self.config.classes))
 
     # -- one step ---------------------------------------------------------------------------
-    def img_step(self, prev: State, action: torch.Tensor, sample: bool = True) -> State:
-        """Prior state after taking ``action`` [..., A] in ``prev``."""
-        return self._prior(self._deter(prev, action), sample)
+    def img_step(self, prev: State, action: torch.Tensor, sample: bool = True,
+                 uniform: torch.Tensor | None = None) -> State:
+        """Prior state after taking ``action`` [..., A] in ``prev``; ``uniform`` [..., S, 1]
+        are the sampling draws (see :func:`sample_one_hot`)."""
+        return self._prior(self._deter(prev, action), sample, uniform)
 
     def obs_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
                  is_first: torch.Tensor | None = None) -> tuple[State, State]:
@@ -91,13 +98,14 @@ class RSSM(nn.Module):
         x = self.img_in(torch.cat([prev["stoch"].flatten(-2), action], -1))
         return self.gru(x, prev["deter"])
 
-    def _prior(self, deter: torch.Tensor, sample: bool = True) -> State:
+    def _prior(self, deter: torch.Tensor, sample: bool = True,
+               uniform: torch.Tensor | None = None) -> State:
         logits = self._logits(self.img_out(deter))
-        stoch = sample_one_hot(logits) if sample else _mode(logits)
+        stoch = sample_one_hot(logits, uniform) if sample else _mode(logits)
         return {"deter": deter, "logits": logits, "stoch": stoch}
 
     def _post_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
-                   is_first: torch.Tensor | None) -> State:
+                   is_first: torch.Tensor | None, uniform: torch.Tensor | None = None) -> State:
         if is_first is not None:
             keep = (~is_first.bool()).to(action.dtype)
             prev = {k: v * keep.reshape(*keep.shape, *([1] * (v.dim() - keep.dim())))
@@ -105,31 +113,37 @@ class RSSM(nn.Module):
             action = action * keep.unsqueeze(-1)
         deter = self._deter(prev, action)
         logits = self._logits(self.obs_out(torch.cat([deter, embed], -1)))
-        return {"deter": deter, "logits": logits, "stoch": sample_one_hot(logits)}
+        return {"deter": deter, "logits": logits, "stoch": sample_one_hot(logits, uniform)}
 
     # -- sequences --------------------------------------------------------------------------
     def observe(self, embed: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
-                state: State | None = None) -> tuple[State, State]:
+                state: State | None = None,
+                uniform: torch.Tensor | None = None) -> tuple[State, State]:
         """Filter a sequence: embed [B, T, E], action [B, T, A], is_first [B, T] ->
-        (posterior, prior), each {k: [B, T, ...]}. ``state`` continues a previous call."""
+        (posterior, prior), each {k: [B, T, ...]}. ``state`` continues a previous call;
+        ``uniform`` [B, T, S, 1] are the posterior's sampling draws (fresh when None). The
+        prior's ``stoch`` is its mode: nothing downstream of the prior reads a sample of it."""
         b, t = embed.shape[:2]
         state = state if state is not None else self.initial(b, embed.device)
         posts = []
         for i in range(t):
-            state = self._post_step(state, action[:, i], embed[:, i], is_first[:, i])
+            draws = None if uniform is None else uniform[:, i]
+            state = self._post_step(state, action[:, i], embed[:, i], is_first[:, i], draws)
             posts.append(state)
         post = stack_states(posts, 1)
         # Nothing in the recurrence reads the prior, so its head runs once on all [B, T]
         # deterministic states instead of inside the sequential loop (fewer, larger matmuls).
-        return post, self._prior(post["deter"])
+        return post, self._prior(post["deter"], sample=False)
 
     def imagine(self, start: State, horizon: int, policy: Policy | None = None,
-                actions: torch.Tensor | None = None) -> tuple[State, torch.Tensor]:
+                actions: torch.Tensor | None = None,
+                uniform: torch.Tensor | None = None) -> tuple[State, torch.Tensor]:
         """Roll the prior forward from ``start`` ({k: [N, ...]}) for ``horizon`` steps.
 
         Actions come from ``policy(feature.detach())`` or from ``actions`` [N, H, A] (the
         student replaying the teacher's actions). Returns (states {k: [N, H+1, ...]} with
         ``start`` first, actions [N, H, A]) where action i was taken in state i.
+        ``uniform`` [N, H, S, 1] are the prior's sampling draws (fresh when None).
         """
         if (policy is None) == (actions is None):
             raise ValueError("imagine needs exactly one of policy and actions")
@@ -139,7 +153,7 @@ class RSSM(nn.Module):
         state = start
         for i in range(horizon):
             action = policy(self.feature(state).detach()) if policy is not None else actions[:, i]
-            state = self.img_step(state, action)
+            state = self.img_step(state, action, uniform=None if uniform is None else uniform[:, i])
             states.append(state)
             taken.append(action)
         return stack_states(states, 1), torch.stack(taken, 1)

@@ -13,12 +13,15 @@ from typing import Any
 import torch
 from torch import nn
 
-from twist_data.errors import CheckpointMismatchError
+from twist_data.errors import CheckpointError, CheckpointMismatchError
 from twist_models.actor_critic import ActorCritic
 from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
 from twist_models.config import TeacherConfig, from_json
 from twist_models.rssm import State
 from twist_models.world_model import WorldModel
+
+#: The final teacher's file name in a collector's run folder (what ``twist-distil`` finds).
+FINAL_TEACHER = "teacher.pt"
 
 
 class Teacher(nn.Module):
@@ -117,3 +120,16 @@ def load_teacher(path: str | os.PathLike[str], state_dim: int | None = None,
     teacher = Teacher(config)
     restore(checkpoint, teacher, config, teacher.optimisers())
     return teacher, checkpoint
+
+
+def find_teacher(out: str | os.PathLike[str]) -> Path:
+    """The final teacher of the collector run in ``out`` (the one ``twist-distil`` uses by
+    default); an error lists the candidates when there are several or none."""
+    found = sorted((Path(out) / "collect").glob(f"*/{FINAL_TEACHER}"))
+    if len(found) != 1:
+        have = ", ".join(str(p) for p in found) or "none"
+        raise CheckpointError(f"expected one final teacher under "
+                              f"{str(Path(out) / 'collect')!r}, found {have}; name one "
+                              "explicitly")
+    read_checkpoint(found[0], kind="teacher")
+    return found[0]

@@ -1,0 +1,99 @@
+"""``twist-distil``: distil a vision student from a matching dataset and its frozen teacher."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
+
+from twist_cli.common import err, out, run_app
+from twist_models.distill import (
+    DISTIL_PRESETS,
+    distil,
+    distil_preset,
+    initialise_distributed,
+    stored_config,
+)
+from twist_models.distill import Progress as DistilProgress
+
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+
+
+@app.command()
+def main(
+    dataset: Annotated[Path, typer.Option(help="Matching dataset folder (from twist-collect).")],
+    out_dir: Annotated[Path | None, typer.Option(
+        "--out", help="Run folder [<dataset>/distil].")] = None,
+    teacher: Annotated[Path | None, typer.Option(
+        help="Teacher checkpoint [the dataset's final teacher].")] = None,
+    preset: Annotated[str, typer.Option(
+        help=f"Student sizes and schedule: {', '.join(DISTIL_PRESETS)}.")] = "quick",
+    steps: Annotated[int | None, typer.Option(help="Student updates.")] = None,
+    batch: Annotated[int | None, typer.Option(help="Windows per update [16].")] = None,
+    length: Annotated[int | None, typer.Option(help="Steps per window L [50].")] = None,
+    horizon: Annotated[int | None, typer.Option(help="Imagined steps H of Eq. 4 [15].")] = None,
+    action_noise: Annotated[float | None, typer.Option(
+        help="Std of the noise on the teacher's imagined actions [0.3].")] = None,
+    no_imagined: Annotated[bool, typer.Option(
+        "--no-imagined", help="Ablation: train without imagined distillation (Eq. 4).")] = False,
+    view: Annotated[int | None, typer.Option(
+        help="Use this camera view only [a random view per step].")] = None,
+    workers: Annotated[int | None, typer.Option(help="Data-loading processes [1].")] = None,
+    seed: Annotated[int | None, typer.Option(help="Run seed [0].")] = None,
+    device: Annotated[str, typer.Option(help="torch device (cuda under torchrun: one per "
+                                             "rank).")] = "cpu",
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue an interrupted run in --out.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+) -> None:
+    """Train a student world model to put domain-randomised images into the teacher's latent
+    space (TWIST Eq. 3 and Eq. 4), offline, and write a deployable agent bundle."""
+    folder = out_dir if out_dir is not None else dataset / "distil"
+    given = {k: v for k, v in {
+        "steps": steps, "batch_size": batch, "length": length, "horizon": horizon,
+        "action_noise": action_noise, "imagined": False if no_imagined else None,
+        "view": view, "workers": workers, "seed": seed}.items() if v is not None}
+    if resume and (folder / "config.json").exists():
+        config = dataclasses.replace(stored_config(folder), **given)
+    else:
+        config = distil_preset(preset, **given)
+    device = initialise_distributed(device)
+    with progress_bar(quiet) as report:
+        summary = distil(dataset, folder, config, teacher=teacher, resume=resume, device=device,
+                         on_progress=report)
+    out.print(json.dumps(summary.to_json(), indent=2))
+
+
+@contextmanager
+def progress_bar(quiet: bool) -> Iterator[Callable[[DistilProgress], None] | None]:
+    """A Rich bar on stderr with updates/s, data-wait share, loss and held-out h-MSE."""
+    if quiet:
+        yield None
+        return
+    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TextColumn("{task.fields[stats]}"), TimeRemainingColumn(),
+                  console=err) as bar:
+        task = bar.add_task("distilling", total=None, stats="")
+
+        def report(p: DistilProgress) -> None:
+            stats = (f"{p.updates_per_second:.2f} updates/s, data wait "
+                     f"{100 * p.data_wait_share:.1f}%, loss {p.loss:.3f}, held-out h-MSE "
+                     f"{p.heldout_h_mse:.4f}")
+            bar.update(task, completed=p.updates, total=p.total, stats=stats)
+
+        yield report
+
+
+def entry() -> None:
+    run_app(app, log_level=logging.INFO)
+
+
+if __name__ == "__main__":
+    entry()

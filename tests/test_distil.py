@@ -1,0 +1,291 @@
+"""twist-distil: the Eq. 3/4 losses against independent computations, the frozen teacher, a
+short run that clearly improves latent agreement, resume after SIGKILL, the agent bundle,
+bad inputs, and that distillation never imports a simulator."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from twist_data.synth import SynthConfig, write_synthetic_dataset
+from twist_models.agent import Agent
+from twist_models.config import student_preset, teacher_preset
+from twist_models.distill import (
+    DistilError,
+    Distillation,
+    distil,
+    distil_preset,
+    latent_agreement,
+    load_student,
+)
+from twist_models.losses import distillation_loss, imagined_distillation_loss
+from twist_models.student import Student
+from twist_models.teacher import Teacher, load_teacher, save_teacher
+
+# Images are deterministic drawings of the state (plus randomised backgrounds), so the
+# image -> teacher-latent mapping is learnable.
+DATA = SynthConfig(episodes=8, steps=30, views=2, image_size=64, seed=5)
+
+
+@pytest.fixture(scope="module")
+def distil_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(dataset, teacher checkpoint): synthetic data and a small random-weights teacher."""
+    root = tmp_path_factory.mktemp("distil")
+    dataset = write_synthetic_dataset(root / "ds", DATA)
+    torch.manual_seed(1)
+    teacher = Teacher(teacher_preset("tiny", 5, 1))
+    return dataset, save_teacher(root / "teacher.pt", teacher)
+
+
+def _np_kl(p_logits: np.ndarray, q_logits: np.ndarray) -> np.ndarray:
+    """KL(p || q) of independent categoricals [..., S, C] summed over S, in float64."""
+    def log_softmax(x: np.ndarray) -> np.ndarray:
+        x = x - x.max(-1, keepdims=True)
+        return x - np.log(np.exp(x).sum(-1, keepdims=True))
+
+    lp, lq = log_softmax(p_logits.astype(np.float64)), log_softmax(q_logits.astype(np.float64))
+    return (np.exp(lp) * (lp - lq)).sum((-2, -1))
+
+
+def test_losses_match_an_independent_computation() -> None:
+    g = torch.Generator().manual_seed(0)
+    b, t, d, s, c = 3, 7, 6, 4, 5
+    student = {"deter": torch.randn(b, t, d, generator=g),
+               "logits": torch.randn(b, t, s, c, generator=g)}
+    teacher = {"deter": torch.randn(b, t, d, generator=g),
+               "logits": torch.randn(b, t, s, c, generator=g)}
+    s_prior, t_prior = torch.randn(b, t, s, c, generator=g), torch.randn(b, t, s, c, generator=g)
+    terms = distillation_loss(student, s_prior, teacher, t_prior)
+    sd, td = student["deter"].numpy(), teacher["deter"].numpy()
+    expected_h = np.mean([np.sum((td[i, j] - sd[i, j]) ** 2) for i in range(b) for j in range(t)])
+    assert float(terms["h"]) == pytest.approx(expected_h, rel=1e-5)
+    assert float(terms["prior_kl"]) == pytest.approx(
+        _np_kl(s_prior.numpy(), t_prior.numpy()).mean(), rel=1e-5)
+    assert float(terms["post_kl"]) == pytest.approx(
+        _np_kl(student["logits"].numpy(), teacher["logits"].numpy()).mean(), rel=1e-5)
+    # Eq. 4 leaves out the start state (index 0), which Eq. 3 already matches.
+    imagined = imagined_distillation_loss(student, teacher)
+    expected = np.mean(((td[:, 1:] - sd[:, 1:]) ** 2).sum(-1))
+    assert float(imagined["h"]) == pytest.approx(expected, rel=1e-5)
+    assert float(imagined["prior_kl"]) == pytest.approx(
+        _np_kl(student["logits"][:, 1:].numpy(), teacher["logits"][:, 1:].numpy()).mean(),
+        rel=1e-5)
+    # Identical latents cost nothing.
+    same = distillation_loss(teacher, t_prior, teacher, t_prior)
+    assert all(float(v) == pytest.approx(0.0, abs=1e-6) for v in same.values())
+
+
+def _objective(imagined: bool = True) -> tuple[Distillation, dict[str, torch.Tensor]]:
+    torch.manual_seed(0)
+    teacher = Teacher(teacher_preset("tiny", 5, 1))
+    student = Student(student_preset("tiny", teacher.config, image_size=64))
+    config = distil_preset("tiny", imagined=imagined)
+    g = torch.Generator().manual_seed(0)
+    is_first = torch.zeros(2, 8, dtype=torch.bool)
+    is_first[:, 0] = True
+    batch = {"image": torch.randint(0, 256, (2, 8, 64, 64, 3), dtype=torch.uint8, generator=g),
+             "state": torch.randn(2, 8, 5, generator=g), "action": torch.rand(2, 8, 1, generator=g),
+             "is_first": is_first}
+    return Distillation(student, teacher, config), batch
+
+
+def test_no_gradient_reaches_the_teacher_and_eq4_is_optional() -> None:
+    objective, batch = _objective()
+    loss, terms = objective(batch)
+    loss.backward()
+    assert {"h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl"} == set(terms)
+    assert all(p.grad is None for p in objective.teacher.parameters())
+    assert any(p.grad is not None and p.grad.abs().sum() > 0
+               for p in objective.student.parameters())
+    # The teacher is no submodule of the objective: an optimiser (or DDP) never sees it.
+    teacher_ids = {id(p) for p in objective.teacher.parameters()}
+    assert not teacher_ids & {id(p) for p in objective.parameters()}
+
+    plain, batch = _objective(imagined=False)
+    loss, terms = plain(batch)
+    assert set(terms) == {"h", "prior_kl", "post_kl"}
+    total = terms["h"] + terms["prior_kl"] + terms["post_kl"]
+    assert float(loss.detach()) == pytest.approx(float(total.detach()))
+
+
+def test_shared_draws_give_equal_samples_to_equal_distributions() -> None:
+    """A student that is an exact copy of the teacher's RSSM, fed the teacher's embeddings,
+    reproduces the teacher's latents exactly with shared draws (and only with them)."""
+    objective, batch = _objective()
+    teacher = objective.teacher
+    rssm = teacher.world_model.rssm
+    embed = teacher.world_model.embed(batch["state"])
+    draws = torch.rand(2, 8, rssm.config.stoch, 1)
+    with torch.no_grad():
+        a, _ = rssm.observe(embed, batch["action"], batch["is_first"], uniform=draws)
+        b, _ = rssm.observe(embed, batch["action"], batch["is_first"], uniform=draws)
+        c, _ = rssm.observe(embed, batch["action"], batch["is_first"])
+    assert torch.equal(a["deter"], b["deter"]) and torch.equal(a["stoch"], b["stoch"])
+    assert not torch.equal(a["stoch"], c["stoch"])
+
+
+def test_short_run_improves_agreement_and_writes_an_agent(distil_inputs, tmp_path) -> None:
+    dataset, teacher = distil_inputs
+    config = distil_preset("tiny", steps=40, eval_every=20, checkpoint_every=20,
+                           snapshot_every=40)
+    summary = distil(dataset, tmp_path / "run", config, teacher=teacher)
+    first, last = summary.heldout_first, summary.heldout_last
+    assert summary.updates == 40
+    assert last["h_mse"] < 0.7 * first["h_mse"]
+    assert last["imagined_h_mse"] < 0.7 * first["imagined_h_mse"]
+    heldout = pd.read_csv(tmp_path / "run" / "heldout.csv")
+    assert list(heldout["updates"]) == [0, 20, 40]
+    metrics = pd.read_csv(tmp_path / "run" / "metrics.csv")
+    assert list(metrics["updates"]) == [20, 40] and (metrics["data_wait_share"] < 1).all()
+    assert (tmp_path / "run" / "latent-agreement.png").stat().st_size > 0
+
+    # The teacher file is untouched, and the bundle acts like student filter + teacher actor.
+    student, extra = load_student(summary.student)
+    assert extra["teacher"] == str(teacher)
+    agent = Agent.load(summary.agent)
+    assert agent.info["task"] == "synthetic-cartpole"
+    frames = np.random.default_rng(0).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
+    torch.manual_seed(3)
+    state, actions = None, []
+    for frame in frames:
+        action, state = agent.act(frame, state)
+        actions.append(action)
+    assert np.asarray(actions).shape == (3, 1) and np.all(np.abs(actions) <= 1)
+    # The same chain from the separately saved student and the teacher's own actor.
+    actor = load_teacher(teacher)[0].actor_critic.actor
+    torch.manual_seed(3)
+    rssm, latent, previous = student.rssm, student.rssm.initial(1), torch.zeros(1, 1)
+    with torch.no_grad():
+        for i, frame in enumerate(frames):
+            embed = student.encoder(torch.as_tensor(frame)[None])
+            latent, _ = rssm.obs_step(latent, previous, embed, torch.tensor([i == 0]))
+            previous = actor(rssm.feature(latent)).mode.clamp(-1, 1)
+            np.testing.assert_allclose(actions[i], previous[0].numpy(), atol=1e-6)
+
+
+def test_heldout_metrics_are_fixed_for_a_fixed_student(distil_inputs) -> None:
+    dataset, teacher_path = distil_inputs
+    from twist_data.sampler import WindowSampler
+
+    teacher, _ = load_teacher(teacher_path)
+    config = distil_preset("tiny")
+    student = Student(student_preset("tiny", teacher.config, image_size=64))
+    batch = {k: torch.as_tensor(v) for k, v in
+             WindowSampler(dataset, config.sampler("heldout", 0)).batch().items()}
+    once = latent_agreement(student, teacher, batch, config, 7)
+    torch.rand(5)  # the global stream moves on; the metric must not
+    again = latent_agreement(student, teacher, batch, config, 7)
+    assert once == again and once["h_mse"] > 0
+    assert latent_agreement(student, teacher, batch, config, 8) != once
+
+
+def _cli(*args: str, **kwargs) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "twist_cli.distil", *args], text=True,
+                          capture_output=True, timeout=300, **kwargs)
+
+
+def test_cli_resumes_after_sigkill_and_continues_the_count(distil_inputs, tmp_path) -> None:
+    dataset, teacher = distil_inputs
+    run = tmp_path / "run"
+    args = ["--dataset", str(dataset), "--teacher", str(teacher), "--out", str(run),
+            "--preset", "tiny", "--quiet"]
+    process = subprocess.Popen([sys.executable, "-m", "twist_cli.distil", *args,
+                                "--steps", "100000"], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 240
+    while not (run / "metrics.csv").exists() or len(pd.read_csv(run / "metrics.csv")) < 2:
+        assert time.monotonic() < deadline and process.poll() is None
+        time.sleep(0.2)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    done = load_student(run / "latest.pt")[0]
+    killed_at = int(torch.load(run / "latest.pt", weights_only=True)["counters"]["updates"])
+    assert killed_at >= 2 and done is not None
+
+    result = _cli(*args, "--resume", "--steps", str(killed_at + 4))
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["updates"] == killed_at + 4
+    metrics = pd.read_csv(run / "metrics.csv")
+    assert metrics["updates"].is_monotonic_increasing and metrics["updates"].iloc[-1] == killed_at + 4
+    # Resuming with another config is refused, naming the field.
+    refused = _cli(*args, "--resume", "--length", "6")
+    assert refused.returncode == 2 and "length was 8, now 6" in refused.stderr
+
+
+def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
+    dataset, teacher = distil_inputs
+    base = ["--dataset", str(dataset), "--preset", "tiny", "--quiet"]
+
+    wrong = Teacher(teacher_preset("tiny", 7, 1))
+    wrong_path = save_teacher(tmp_path / "wrong.pt", wrong)
+    cases = {
+        "state_dim 7": ["--teacher", str(wrong_path), "--out", str(tmp_path / "a")],
+        "does not exist": ["--teacher", str(tmp_path / "missing.pt"), "--out",
+                           str(tmp_path / "b")],
+        "longer than every episode": ["--teacher", str(teacher), "--length", "500", "--out",
+                                      str(tmp_path / "c")],
+        "one final teacher": ["--out", str(tmp_path / "d")],  # synthetic data has none
+    }
+    for expected, args in cases.items():
+        result = _cli(*base, *args)
+        assert result.returncode == 2, (expected, result.stderr)
+        assert expected in result.stderr and "Traceback" not in result.stderr, result.stderr
+    assert "but the data has state_dim 5" in _cli(*base, *cases["state_dim 7"]).stderr
+
+    no_images = tmp_path / "no-images"
+    shutil.copytree(dataset, no_images)
+    for shard in no_images.glob("*.zarr"):
+        shutil.rmtree(shard / "data" / "image")
+    result = _cli("--dataset", str(no_images), "--teacher", str(teacher), "--preset", "tiny",
+                  "--out", str(tmp_path / "e"), "--quiet")
+    assert result.returncode == 2 and "no readable images" in result.stderr, result.stderr
+    with pytest.raises(DistilError, match="already holds a distillation run"):
+        (tmp_path / "f").mkdir()
+        (tmp_path / "f" / "config.json").write_text("{}")
+        distil(dataset, tmp_path / "f", distil_preset("tiny"), teacher=teacher)
+
+
+def test_distillation_never_imports_a_simulator(distil_inputs, tmp_path) -> None:
+    dataset, teacher = distil_inputs
+    code = (
+        "import sys\n"
+        "from twist_models.distill import distil, distil_preset\n"
+        f"distil({str(dataset)!r}, {str(tmp_path / 'run')!r}, distil_preset('tiny', steps=2),"
+        f" teacher={str(teacher)!r})\n"
+        "import twist_cli.distil\n"
+        "loaded = [m for m in sys.modules if m.split('.')[0] in "
+        "('mujoco', 'dm_control', 'dm_env')]\n"
+        "assert not loaded, loaded\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=300, env={**os.environ})
+    assert result.returncode == 0, result.stderr
+
+
+@pytest.mark.slow
+def test_torchrun_data_parallel_on_cpu(distil_inputs, tmp_path) -> None:
+    """Two gloo ranks train one student: rank 0 writes, the count is the global one."""
+    dataset, teacher = distil_inputs
+    result = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+         "-m", "twist_cli.distil", "--dataset", str(dataset), "--teacher", str(teacher),
+         "--out", str(tmp_path / "ddp"), "--preset", "tiny", "--steps", "4", "--quiet"],
+        capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    config = json.loads((tmp_path / "ddp" / "config.json").read_text())
+    assert config["world_size"] == 2
+    assert dataclasses.asdict(distil_preset("tiny"))["batch_size"] == 2
+    assert len(pd.read_csv(tmp_path / "ddp" / "metrics.csv")) >= 1

@@ -1,0 +1,606 @@
+"""Offline teacher -> student distillation (TWIST, Eq. 3 and Eq. 4) from a matching dataset.
+
+Never touches a simulator: it reads D and a frozen teacher checkpoint and writes a run folder
+``<out>/``: ``config.json``, ``metrics.csv`` (training terms, updates/s, data-wait share),
+``heldout.csv`` and its plot ``latent-agreement.png``, ``latest.pt`` (resume point),
+``student-<updates>.pt`` snapshots, the final ``student.pt``, the deployable ``agent.pt``
+(:class:`twist_models.agent.Agent`) and ``summary.json``.
+
+Decisions (the README's "twist-distil" section says more):
+
+* **Shared draws.** Teacher and student sample their categorical latents from the *same*
+  uniform draws (inverse-CDF sampling): z_t^teacher and z_t^student are equal wherever the
+  two distributions agree, so h_t^student is compared with the h_t^teacher that the same
+  sample path produced. With independent draws the h target is noisy even for a perfect
+  student. ``shared_draws=False`` gives independent samples.
+* **Eq. 4** starts from the posterior states of both models at ``imag_starts`` random steps
+  of the windows (0: every step, as the paper); the teacher samples its actor plus Gaussian
+  noise, the student replays those actions; gradients flow into the student's start states.
+* **Held-out agreement** is measured on a fixed batch of windows from the held-out episodes
+  (every ``holdout_every``-th episode, never trained on), with fixed draws, so its curve
+  moves only because the student changes.
+* **Resume** restores the student, its optimiser and the torch RNG from ``latest.pt``; the
+  window stream restarts from a seed derived from (seed, update), so a resumed run is
+  reproducible but not bit-identical to an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.utils.data import DataLoader
+
+from twist_data.errors import ConfigError, TwistError
+from twist_data.randomisation import derived_seed
+from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.sampler import SamplerConfig, WindowDataset, WindowSampler
+from twist_models.agent import Agent
+from twist_models.checkpoint import read_checkpoint, restore, save_checkpoint
+from twist_models.config import (
+    PRESETS,
+    OptimConfig,
+    StudentConfig,
+    from_json,
+    require_non_negative,
+    require_positive,
+    student_preset,
+    to_json,
+)
+from twist_models.losses import distillation_loss, imagined_distillation_loss
+from twist_models.runlog import Board, append_csv
+from twist_models.student import Student
+from twist_models.teacher import Teacher, find_teacher, load_teacher
+
+log = logging.getLogger(__name__)
+
+KEYS = ("image", "state", "action", "is_first")
+TERMS = ("h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl")
+METRIC_COLUMNS = ("updates", "wall_s", "updates_per_s", "data_wait_share", "loss", *TERMS,
+                  "grad_norm")
+HELDOUT_COLUMNS = ("updates", "h_mse", "post_kl", "prior_kl", "imagined_h_mse")
+FINAL_STUDENT = "student.pt"
+AGENT = "agent.pt"
+
+
+class DistilError(TwistError):
+    """Distillation cannot start or continue (inputs, output folder, resume state)."""
+
+
+@dataclass(frozen=True)
+class DistilConfig:
+    """One distillation run: student size, batches, the two losses and the schedule."""
+
+    student: str = "quick"
+    """Student size preset (its CNN: ``tiny``, ``quick``, ``paper``); the RSSM is the teacher's."""
+    steps: int = 50_000
+    """Student updates."""
+    batch_size: int = 16
+    """Windows per update (the paper: 16)."""
+    length: int = 50
+    """L, steps per window (the paper: 50)."""
+    horizon: int = 15
+    """H, imagined steps of Eq. 4 (the paper: 15)."""
+    action_noise: float = 0.3
+    """Std of the Gaussian noise added to the teacher's actions in Eq. 4 (0: no noise)."""
+    imagined: bool = True
+    """Train with Eq. 4 too (False: the paper's "without imagined distillation" ablation)."""
+    imag_starts: int = 0
+    """Posterior states that start Eq. 4's rollouts; 0 = every step of every window."""
+    shared_draws: bool = True
+    """Teacher and student sample their latents from the same uniform draws."""
+    h_weight: float = 1.0
+    """Weight of ||h_teacher - h_student||^2 on data (Eq. 3)."""
+    prior_weight: float = 1.0
+    """Weight of KL(prior_student || prior_teacher) on data (Eq. 3)."""
+    post_weight: float = 1.0
+    """Weight of KL(posterior_student || posterior_teacher) on data (Eq. 3)."""
+    imagined_weight: float = 1.0
+    """Weight of the whole imagined term (Eq. 4)."""
+    view: int | None = None
+    """Camera view shown at every step; None: a random one of the K per step."""
+    lr: float = 3e-4
+    """Adam learning rate of the student (DreamerV2's world-model rate)."""
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    """Adam epsilon, gradient clip and weight decay."""
+    seed: int = 0
+    """Seed of the student's initialisation, the windows and the sampling draws."""
+    holdout_every: int = 10
+    """Every n-th episode of D is held out for the agreement metrics and never trained on."""
+    heldout_windows: int = 16
+    """Windows in the fixed held-out batch."""
+    eval_every: int = 1_000
+    """Updates between held-out evaluations (and metrics.csv rows)."""
+    checkpoint_every: int = 1_000
+    """Updates between writes of ``latest.pt``."""
+    snapshot_every: int = 10_000
+    """Updates between kept ``student-<updates>.pt`` snapshots."""
+    workers: int = 1
+    """DataLoader processes decoding windows (0: decode in the training process)."""
+
+    def __post_init__(self) -> None:
+        if self.student not in PRESETS:
+            raise ConfigError(f"unknown student preset {self.student!r}; valid presets are: "
+                              f"{', '.join(PRESETS)}")
+        require_positive(self, "steps", "batch_size", "length", "horizon", "lr",
+                         "heldout_windows", "eval_every", "checkpoint_every", "snapshot_every")
+        require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
+                             "post_weight", "imagined_weight", "workers")
+        if self.holdout_every < 2:
+            raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
+        if self.view is not None and self.view < 0:
+            raise ConfigError(f"view must be >= 0, got {self.view}")
+
+    def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
+        return SamplerConfig(length=self.length, batch_size=batch_size or self.batch_size,
+                             view=self.view, seed=seed, keys=KEYS,
+                             holdout_every=self.holdout_every, split=split)
+
+
+DISTIL_PRESETS: dict[str, DistilConfig] = {
+    # The paper's batch, window and horizon; Eq. 4 from every posterior state.
+    "paper": DistilConfig(student="paper", steps=50_000),
+    # CPU demo: quick sizes, Eq. 4 from 256 states per update.
+    "quick": DistilConfig(student="quick", steps=3_000, imag_starts=256, eval_every=100,
+                          checkpoint_every=250, snapshot_every=1_000),
+    # Tests: seconds.
+    "tiny": DistilConfig(student="tiny", steps=6, batch_size=2, length=8, horizon=3,
+                         imag_starts=8, eval_every=3, checkpoint_every=2, snapshot_every=4,
+                         holdout_every=4, heldout_windows=2, workers=0),
+}
+
+
+def distil_preset(name: str, **overrides: Any) -> DistilConfig:
+    """Preset ``name`` with fields replaced by ``overrides`` (None values are ignored)."""
+    if name not in DISTIL_PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; valid presets are: "
+                          f"{', '.join(DISTIL_PRESETS)}")
+    return dataclasses.replace(DISTIL_PRESETS[name],
+                               **{k: v for k, v in overrides.items() if v is not None})
+
+
+# -- one update ---------------------------------------------------------------------------------
+def draws(batch_shape: tuple[int, ...], stoch: int, device: torch.device) -> torch.Tensor:
+    """Uniform sampling draws [*batch_shape, S, 1] for :func:`twist_models.rssm.sample_one_hot`."""
+    return torch.rand(*batch_shape, stoch, 1, device=device)
+
+
+class Distillation(nn.Module):
+    """The objective as a module around the student (so DistributedDataParallel can wrap it);
+    the frozen teacher is held outside the module tree: it is neither trained nor synced."""
+
+    def __init__(self, student: Student, teacher: Teacher, config: DistilConfig) -> None:
+        super().__init__()
+        self.student = student
+        self._teacher = [teacher]
+        self.config = config
+
+    @property
+    def teacher(self) -> Teacher:
+        return self._teacher[0]
+
+    def forward(self, batch: Mapping[str, torch.Tensor]
+                ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Total loss [] and every term [] for a batch of windows ({k: [B, L, ...]})."""
+        c, teacher, student = self.config, self.teacher, self.student
+        b, length = batch["action"].shape[:2]
+        stoch = student.config.rssm.stoch
+        device = batch["action"].device
+        post_draws = draws((b, length), stoch, device) if c.shared_draws else None
+        with torch.no_grad():
+            wm = teacher.world_model
+            t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), batch["action"],
+                                              batch["is_first"], uniform=post_draws)
+        s_post, s_prior = student.observe(batch["image"], batch["action"], batch["is_first"],
+                                          uniform=post_draws)
+        terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
+        loss = (c.h_weight * terms["h"] + c.prior_weight * terms["prior_kl"]
+                + c.post_weight * terms["post_kl"])
+        if c.imagined and c.imagined_weight > 0:
+            imagined = self.imagined_terms(s_post, t_post)
+            terms.update({f"imagined_{k}": v for k, v in imagined.items()})
+            loss = loss + c.imagined_weight * (imagined["h"] + imagined["prior_kl"])
+        return loss, terms
+
+    def imagined_terms(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
+                       ) -> dict[str, torch.Tensor]:
+        """Eq. 4 from (a subset of) the posterior states [B, L, ...] of both models."""
+        c, teacher = self.config, self.teacher
+        flat_s = {k: v.flatten(0, 1) for k, v in s_post.items()}
+        flat_t = {k: v.flatten(0, 1) for k, v in t_post.items()}
+        n = flat_s["deter"].shape[0]
+        if 0 < c.imag_starts < n:
+            chosen = torch.randperm(n, device=flat_s["deter"].device)[:c.imag_starts]
+            flat_s = {k: v[chosen] for k, v in flat_s.items()}
+            flat_t = {k: v[chosen] for k, v in flat_t.items()}
+            n = c.imag_starts
+        stoch = self.student.config.rssm.stoch
+        device = flat_s["deter"].device
+        img_draws = draws((n, c.horizon), stoch, device) if c.shared_draws else None
+        actor = teacher.actor_critic.actor
+
+        def noisy_actor(feature: torch.Tensor) -> torch.Tensor:
+            action = actor(feature).rsample()
+            if c.action_noise:
+                action = action + c.action_noise * torch.randn_like(action)
+            return action.clamp(-1.0, 1.0)
+
+        with torch.no_grad():
+            t_states, actions = teacher.world_model.rssm.imagine(
+                flat_t, c.horizon, policy=noisy_actor, uniform=img_draws)
+        s_states, _ = self.student.rssm.imagine(flat_s, c.horizon, actions=actions,
+                                                uniform=img_draws)
+        return imagined_distillation_loss(s_states, t_states)
+
+
+@torch.no_grad()
+def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, torch.Tensor],
+                     config: DistilConfig, seed: int = 0) -> dict[str, float]:
+    """How close the student's latents are to the teacher's on ``batch``: per-element MSE of
+    h (``h_mse``), posterior and prior KL (student || teacher) and the h-MSE along Eq. 4's
+    rollouts. All randomness (draws, starts, action noise) comes from ``seed``, so a fixed
+    student on a fixed batch always scores the same."""
+    device = batch["action"].device
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        torch.manual_seed(seed)
+        post_draws = draws(batch["action"].shape[:2], student.config.rssm.stoch, device)
+        wm = teacher.world_model
+        t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), batch["action"],
+                                          batch["is_first"], uniform=post_draws)
+        s_post, s_prior = student.observe(batch["image"], batch["action"], batch["is_first"],
+                                          uniform=post_draws)
+        terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
+        imagined = Distillation(student, teacher, config).imagined_terms(s_post, t_post)
+    deter = student.config.rssm.deter
+    return {"h_mse": float(terms["h"]) / deter, "post_kl": float(terms["post_kl"]),
+            "prior_kl": float(terms["prior_kl"]), "imagined_h_mse": float(imagined["h"]) / deter}
+
+
+# -- the run ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Progress:
+    """Reported every ``eval_every`` updates."""
+
+    updates: int
+    total: int
+    updates_per_second: float
+    data_wait_share: float
+    loss: float
+    heldout_h_mse: float
+
+
+@dataclass
+class DistilSummary:
+    """What a distillation run did."""
+
+    out: Path
+    student: Path
+    agent: Path
+    teacher: Path
+    updates: int
+    seconds: float
+    updates_per_second: float
+    data_wait_share: float
+    heldout_first: dict[str, float]
+    heldout_last: dict[str, float]
+
+    def to_json(self) -> dict[str, Any]:
+        return {k: str(v) if isinstance(v, Path) else v
+                for k, v in dataclasses.asdict(self).items()}
+
+
+def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config: DistilConfig,
+           teacher: str | os.PathLike[str] | None = None, resume: bool = False,
+           device: str = "cpu", on_progress: Callable[[Progress], None] | None = None
+           ) -> DistilSummary:
+    """Distil a student from the matching dataset ``dataset`` and a frozen ``teacher``
+    checkpoint (default: the dataset's final teacher) into the run folder ``out``."""
+    out, dataset_path = Path(out), Path(dataset)
+    data = _open_inputs(dataset_path, config)
+    teacher_path = Path(teacher) if teacher is not None else find_teacher(dataset_path)
+    teacher_model, _ = load_teacher(teacher_path, data.spec.state_dim, data.spec.action_dim)
+    student_config = student_preset(config.student, teacher_model.config, data.spec.image_height)
+    _check_output(out, config, student_config, resume)
+    rank, world = _rank_and_world()
+    run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,
+               torch.device(device), rank, world)
+    return run.loop(on_progress)
+
+
+def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
+    if not path.exists():
+        raise DistilError(f"dataset {str(path)!r} does not exist")
+    data = open_dataset(path)
+    spec = data.spec
+    if spec.views < 1 or spec.image_height < 1:
+        raise DistilError(f"dataset {str(path)!r} has no images (views={spec.views}); the "
+                          "student learns from images")
+    if config.view is not None and config.view >= spec.views:
+        raise DistilError(f"view {config.view} is out of range: the dataset has {spec.views} "
+                          f"views (0..{spec.views - 1})")
+    try:
+        for shard_start in data.shard_offsets[:-1]:
+            data.read_frames(np.array([shard_start]), np.array([0]),
+                             np.empty((1, *spec.image_shape), np.uint8))
+    except Exception as exc:  # zarr and the codecs raise assorted types for missing chunks
+        raise DistilError(f"dataset {str(path)!r} has no readable images "
+                          f"({type(exc).__name__}: {exc}); the student learns from images"
+                          ) from None
+    longest = int(data.episode_lengths.max())
+    if config.length > longest:
+        raise DistilError(f"window length {config.length} is longer than every episode of "
+                          f"{str(path)!r} (the longest has {longest} steps)")
+    return data
+
+
+def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resume: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise DistilError(f"output {str(out)!r} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DistilError(f"cannot create output folder {str(out)!r}: {exc.strerror}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise DistilError(f"output folder {str(out)!r} is not writable")
+    stored = out / "config.json"
+    if stored.exists() and not resume:
+        raise DistilError(f"{str(out)!r} already holds a distillation run; pass --resume to "
+                          "continue it, or another --out")
+    if resume and stored.exists():
+        before = json.loads(stored.read_text())
+        now = {"distil": to_json(config), "student": to_json(student)}
+        changed = [f"{k} was {before['distil'].get(k)!r}, now {v!r}"
+                   for k, v in now["distil"].items() if k != "steps" and before["distil"].get(k) != v]
+        if before.get("student") != now["student"]:
+            changed.append("the student's sizes differ")
+        if changed:
+            raise DistilError(f"--resume with a different config ({'; '.join(changed)}); only "
+                              "--steps may change when resuming")
+
+
+def _rank_and_world() -> tuple[int, int]:
+    dist = torch.distributed
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _to_device(batch: Mapping[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: torch.as_tensor(batch[k]).to(device, non_blocking=True) for k in KEYS}
+
+
+class _Run:
+    """State of one distillation run; :meth:`loop` drives it."""
+
+    def __init__(self, dataset_path: Path, data: MatchingDataset, out: Path,
+                 config: DistilConfig, teacher: Teacher, teacher_path: Path,
+                 student_config: StudentConfig, device: torch.device, rank: int,
+                 world: int) -> None:
+        self.dataset_path, self.data, self.out, self.config = dataset_path, data, out, config
+        self.teacher_path, self.device, self.rank, self.world = teacher_path, device, rank, world
+        self.teacher = teacher.to_device(device).eval().requires_grad_(False)
+        self.writes = rank == 0
+        latest = out / "latest.pt"
+        if latest.exists():
+            checkpoint = read_checkpoint(latest, kind="student")
+            self.student = Student(student_config)
+            self.optimiser = self._optimiser()
+            restore(checkpoint, self.student, student_config, {"student": self.optimiser})
+            self.updates = checkpoint.counters["updates"]
+            self.seconds = float(checkpoint.extra.get("seconds", 0.0))
+            self.heldout_first = checkpoint.extra.get("heldout_first", {})
+            torch.set_rng_state(torch.tensor(checkpoint.extra["torch_rng"], dtype=torch.uint8))
+            log.info("resumed the student at update %d from %s", self.updates, latest)
+        else:
+            torch.manual_seed(config.seed)
+            self.student = Student(student_config)
+            self.optimiser = self._optimiser()
+            self.updates, self.seconds, self.heldout_first = 0, 0.0, {}
+            # Ranks start from one student but draw their own latent samples and noise.
+            torch.manual_seed(derived_seed(config.seed, 5, rank))
+        self.student.to(device)
+        _move_optimiser(self.optimiser, device)
+        self.objective: nn.Module = Distillation(self.student, self.teacher, config)
+        if world > 1:
+            self.objective = nn.parallel.DistributedDataParallel(
+                self.objective, device_ids=[device.index] if device.type == "cuda" else None)
+        self.heldout = self._heldout_batch()
+        self.heldout_last: dict[str, float] = {}
+        self.board = Board(out) if self.writes else None
+        if self.writes:
+            (out / "config.json").write_text(json.dumps(
+                {"distil": to_json(config), "student": to_json(student_config),
+                 "teacher": str(teacher_path), "dataset": str(dataset_path),
+                 "world_size": world}, indent=2))
+
+    def _optimiser(self) -> torch.optim.Optimizer:
+        o = self.config.optim
+        return torch.optim.AdamW(self.student.parameters(), self.config.lr, eps=o.eps,
+                                 weight_decay=o.weight_decay)
+
+    def _heldout_batch(self) -> dict[str, torch.Tensor]:
+        c = self.config
+        try:
+            sampler = WindowSampler(self.data, c.sampler("heldout", derived_seed(c.seed, 1),
+                                                         c.heldout_windows))
+        except TwistError as exc:
+            raise DistilError(f"no held-out windows (every {c.holdout_every}th episode is held "
+                              f"out): {exc}; lower holdout_every or the window length") from None
+        return _to_device(sampler.batch(), self.device)
+
+    def _windows(self) -> Iterator[dict[str, torch.Tensor]]:
+        """Training windows; a resumed run draws from a stream seeded by its update count."""
+        c = self.config
+        sampler = c.sampler("train", derived_seed(c.seed, 3, self.updates))
+        try:
+            windows = WindowDataset(self.dataset_path, sampler)
+            loader = DataLoader(windows, batch_size=None, num_workers=c.workers,
+                                pin_memory=self.device.type == "cuda",
+                                persistent_workers=c.workers > 0,
+                                prefetch_factor=4 if c.workers else None)
+        except TwistError as exc:
+            raise DistilError(f"no training windows: {exc}") from None
+        return iter(loader)
+
+    def evaluate(self) -> dict[str, float]:
+        self.student.eval()
+        metrics = latent_agreement(self.student, self.teacher, self.heldout, self.config,
+                                   derived_seed(self.config.seed, 4))
+        self.student.train()
+        if not self.heldout_first:
+            self.heldout_first = metrics
+        self.heldout_last = metrics
+        if self.writes:
+            append_csv(self.out / "heldout.csv", {"updates": self.updates, **metrics},
+                       HELDOUT_COLUMNS)
+            for key, value in metrics.items():
+                self.board.scalar(f"heldout/{key}", value, self.updates)
+            plot_agreement(self.out / "heldout.csv", self.out / "latent-agreement.png")
+        return metrics
+
+    def loop(self, on_progress: Callable[[Progress], None] | None) -> DistilSummary:
+        c = self.config
+        if self.updates == 0 and not (self.out / "heldout.csv").exists():
+            self.evaluate()
+        windows = self._windows() if self.updates < c.steps else iter(())
+        params = list(self.student.parameters())
+        sums: dict[str, float] = {}
+        interval_start, wait, done = time.perf_counter(), 0.0, 0
+        run_start, run_wait, run_done = interval_start, 0.0, 0
+        while self.updates < c.steps:
+            tick = time.perf_counter()
+            batch = _to_device(next(windows), self.device)
+            waited = time.perf_counter() - tick
+            wait, run_wait = wait + waited, run_wait + waited
+            loss, terms = self.objective(batch)
+            self.optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
+            self.optimiser.step()
+            self.updates += 1
+            done, run_done = done + 1, run_done + 1
+            for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
+                sums[key] = sums.get(key, 0.0) + float(value.detach())
+            if self.updates % c.eval_every == 0 or self.updates == c.steps:
+                elapsed = time.perf_counter() - interval_start
+                self.seconds += elapsed
+                row = {"updates": self.updates, "wall_s": round(self.seconds, 2),
+                       "updates_per_s": done / elapsed, "data_wait_share": wait / elapsed,
+                       **{k: v / done for k, v in sums.items()}}
+                heldout = self.evaluate()
+                if self.writes:
+                    append_csv(self.out / "metrics.csv", row, METRIC_COLUMNS)
+                    for key in (*TERMS, "loss"):
+                        if key in row:
+                            self.board.scalar(f"train/{key}", row[key], self.updates)
+                if on_progress is not None:
+                    on_progress(Progress(self.updates, c.steps, row["updates_per_s"],
+                                         row["data_wait_share"], row["loss"],
+                                         heldout["h_mse"]))
+                sums, wait, done, interval_start = {}, 0.0, 0, time.perf_counter()
+            if self.updates % c.checkpoint_every == 0 or self.updates == c.steps:
+                self._checkpoint(self.out / "latest.pt")
+            if self.updates % c.snapshot_every == 0:
+                self._checkpoint(self.out / f"student-{self.updates:08d}.pt")
+        total = time.perf_counter() - run_start
+        student = self._checkpoint(self.out / FINAL_STUDENT)
+        agent = self.out / AGENT
+        if self.writes:
+            info = {"task": self.data.spec.task, "action_repeat": self.data.spec.action_repeat,
+                    "image_size": self.data.spec.image_height, "dataset": str(self.dataset_path),
+                    "teacher": str(self.teacher_path), "student_updates": self.updates}
+            Agent.from_models(self.student, self.teacher, info).save(agent)
+        summary = DistilSummary(
+            out=self.out, student=student, agent=agent, teacher=self.teacher_path,
+            updates=self.updates, seconds=round(self.seconds, 2),
+            updates_per_second=round(run_done / total, 3) if run_done else 0.0,
+            data_wait_share=round(run_wait / total, 4) if run_done else 0.0,
+            heldout_first=self.heldout_first, heldout_last=self.heldout_last)
+        if self.writes:
+            (self.out / "summary.json").write_text(json.dumps(summary.to_json(), indent=2))
+        return summary
+
+    def _checkpoint(self, path: Path) -> Path:
+        if self.writes:
+            extra = {"torch_rng": torch.get_rng_state().tolist(), "seconds": self.seconds,
+                     "heldout_first": self.heldout_first, "distil": to_json(self.config),
+                     "teacher": str(self.teacher_path), "dataset": str(self.dataset_path)}
+            save_checkpoint(path, "student", self.student, self.student.config,
+                            {"student": self.optimiser}, {"updates": self.updates}, extra)
+        return path
+
+
+def _move_optimiser(optimiser: torch.optim.Optimizer, device: torch.device) -> None:
+    for state in optimiser.state.values():
+        for key, value in state.items():
+            if torch.is_tensor(value) and value.dim() > 0:
+                state[key] = value.to(device)
+
+
+def load_student(path: str | os.PathLike[str]) -> tuple[Student, dict[str, Any]]:
+    """A student checkpoint's model and its run record (``extra``)."""
+    checkpoint = read_checkpoint(path, kind="student")
+    config = from_json(StudentConfig, checkpoint.config)
+    student = Student(config)
+    restore(checkpoint, student, config)
+    return student, checkpoint.extra
+
+
+def plot_agreement(heldout_csv: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
+    """Held-out latent agreement (h-MSE and posterior KL, log scale) against updates."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import pandas as pd
+    from matplotlib import pyplot as plt
+
+    table = pd.read_csv(heldout_csv)
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2), dpi=120)
+    try:
+        for ax, columns, label in ((axes[0], ("h_mse", "imagined_h_mse"), "h MSE"),
+                                   (axes[1], ("post_kl", "prior_kl"), "KL(student || teacher)")):
+            for column in columns:
+                ax.plot(table["updates"], table[column].clip(lower=1e-6), marker="o",
+                        markersize=3, label=column)
+            ax.set_yscale("log")
+            ax.set_xlabel("student updates")
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        fig.suptitle("held-out latent agreement with the teacher", fontsize=9)
+        fig.tight_layout()
+        out = Path(out)
+        fig.savefig(out)
+    finally:
+        plt.close(fig)
+    return out
+
+
+def initialise_distributed(device: str) -> str:
+    """Join the process group ``torchrun`` describes (WORLD_SIZE > 1) and return this rank's
+    device (``cuda`` becomes ``cuda:<local rank>``); a no-op for single-process runs."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return device
+    backend = "nccl" if device.startswith("cuda") else "gloo"
+    torch.distributed.init_process_group(backend)
+    if device == "cuda":
+        device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
+        torch.cuda.set_device(device)
+    return device
+
+
+
+def stored_config(out: str | os.PathLike[str]) -> DistilConfig:
+    """The distil config the run in ``out`` was started with."""
+    data = json.loads((Path(out) / "config.json").read_text())
+    return from_json(DistilConfig, data["distil"])
