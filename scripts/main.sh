@@ -2,7 +2,8 @@
 # The main job on the embedded default task, cartpole-balance: train the state teacher with
 # the `quick` preset while writing the matching dataset D (K=2 domain-randomised views per
 # step), then inspect, verify (including a pixel-exact re-render), re-render under held-out
-# DR, export, and draw a contact sheet. Distillation and evaluation join as they land.
+# DR, export, and draw a contact sheet; then distil the vision student from D offline.
+# Evaluation joins when it lands.
 # PRESET=tiny gives a smoke run of seconds; --resume continues an interrupted run.
 set -euo pipefail
 . "$(dirname "$0")/bootstrap.sh"
@@ -22,4 +23,8 @@ twist-data export-video "$OUT/heldout" "$OUT/episode-last-heldout.mp4" --episode
 twist-data export-hdf5 "$OUT/dataset" "$OUT/dataset.h5"
 twist-data contact-sheet "$TASK" "$OUT/contact-sheet.png"
 cp "$OUT/dataset/collect/collect-000/learning-curve.png" "$OUT/learning-curve.png"
+DISTIL=()
+if [[ -f "$OUT/student/config.json" ]]; then DISTIL=(--resume); fi
+twist-distil --dataset "$OUT/dataset" --out "$OUT/student" --preset "$PRESET" "${DISTIL[@]}"
+cp "$OUT/student/latent-agreement.png" "$OUT/latent-agreement.png"
 echo "main job done: results in $OUT"
