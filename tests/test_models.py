@@ -253,3 +253,25 @@ def test_mismatched_or_foreign_checkpoints_are_refused(tmp_path: Path) -> None:
         load_teacher(foreign)
     with pytest.raises(CheckpointError, match="does not exist"):
         load_teacher(tmp_path / "missing.ckpt")
+
+
+def test_checkpoints_from_before_a_new_config_field_still_load(tmp_path: Path) -> None:
+    """A field added to a config later takes its default when an older checkpoint loads;
+    a stored value that differs from the model's is still refused."""
+    import json
+
+    teacher = Teacher(teacher_preset("tiny", 5, 2))
+    path = save_teacher(tmp_path / "t.ckpt", teacher)
+    payload = torch.load(path, weights_only=True)
+    config = json.loads(payload["config"])
+    del config["actor_critic"]["return_norm"]  # as written before the field existed
+    payload["config"] = json.dumps(config)
+    torch.save(payload, path)
+    loaded, _ = load_teacher(path)
+    assert loaded.config.actor_critic.return_norm is False
+    from twist_models.checkpoint import read_checkpoint, restore
+
+    other = dataclasses.replace(teacher.config, actor_critic=dataclasses.replace(
+        teacher.config.actor_critic, actor_grad="reinforce"))
+    with pytest.raises(CheckpointMismatchError, match="actor_grad is 'dynamics' in the checkpoint"):
+        restore(read_checkpoint(path), Teacher(other), other)
