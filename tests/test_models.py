@@ -266,6 +266,7 @@ def test_checkpoints_from_before_a_new_config_field_still_load(tmp_path: Path) -
     config = json.loads(payload["config"])
     del config["actor_critic"]["return_norm"]  # as written before the field existed
     payload["config"] = json.dumps(config)
+    del payload["weights"]["actor_critic.return_range"]  # and before its statistics
     torch.save(payload, path)
     loaded, _ = load_teacher(path)
     assert loaded.config.actor_critic.return_norm is False
@@ -275,3 +276,7 @@ def test_checkpoints_from_before_a_new_config_field_still_load(tmp_path: Path) -
         teacher.config.actor_critic, actor_grad="reinforce"))
     with pytest.raises(CheckpointMismatchError, match="actor_grad is 'dynamics' in the checkpoint"):
         restore(read_checkpoint(path), Teacher(other), other)
+    payload["weights"]["world_model.reward_head.0.weight"] = torch.zeros(3, 3)
+    torch.save(payload, path)
+    with pytest.raises(CheckpointMismatchError, match="weights do not fit the model"):
+        load_teacher(path)

@@ -92,6 +92,11 @@ class ActorCritic(nn.Module):
         # EMA of the (5%, 95%) quantiles of imagined returns, for return_norm.
         self.register_buffer("return_range", torch.zeros(2))
 
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args, **kwargs) -> None:
+        # Checkpoints written before return normalisation existed lack its statistics.
+        state_dict.setdefault(prefix + "return_range", self.return_range.clone())
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def value(self, feature: torch.Tensor, target: bool = False) -> torch.Tensor:
         return (self.target_critic if target else self.critic)(feature).squeeze(-1)
 

@@ -120,7 +120,12 @@ def restore(checkpoint: Checkpoint, module: nn.Module, config: Any,
     if differences:
         raise CheckpointMismatchError(f"{checkpoint.kind} checkpoint does not match the model: "
                                       + "; ".join(differences))
-    module.load_state_dict(checkpoint.weights)
+    try:
+        module.load_state_dict(checkpoint.weights)
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()[-1].strip()
+        raise CheckpointMismatchError(f"{checkpoint.kind} checkpoint's weights do not fit the "
+                                      f"model: {first}") from None
     for name, optimiser in (optimisers or {}).items():
         if name in checkpoint.optimisers:
             optimiser.load_state_dict(checkpoint.optimisers[name])
