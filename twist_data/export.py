@@ -35,15 +35,26 @@ def episode_strip(images: np.ndarray, scale: int = 4) -> np.ndarray:
 def export_video(dataset_path: str | os.PathLike[str], episode: int, out: str | os.PathLike[str],
                  fps: int = 25, scale: int = 4) -> Path:
     """Write episode ``episode`` (global index) as an ``.mp4`` or ``.gif`` with its K views."""
-    out = Path(out)
-    suffix = out.suffix.lower()
-    if suffix not in (".mp4", ".gif"):
-        raise ExportError(f"video file must end in .mp4 or .gif, got {out.name!r}")
-    if scale < 1 or fps < 1:
-        raise ExportError(f"scale and fps must be >= 1, got scale={scale}, fps={fps}")
+    if scale < 1:
+        raise ExportError(f"scale must be >= 1, got {scale}")
+    _check_video_path(Path(out), fps)
     ds = open_dataset(dataset_path)
-    frames = episode_strip(ds.episode(episode).image, scale)
-    bgr = frames[..., ::-1]
+    return write_video(episode_strip(ds.episode(episode).image, scale), out, fps)
+
+
+def _check_video_path(out: Path, fps: int) -> None:
+    if out.suffix.lower() not in (".mp4", ".gif"):
+        raise ExportError(f"video file must end in .mp4 or .gif, got {out.name!r}")
+    if fps < 1:
+        raise ExportError(f"fps must be >= 1, got {fps}")
+
+
+def write_video(frames: np.ndarray, out: str | os.PathLike[str], fps: int = 25) -> Path:
+    """Write RGB frames [T, H, W, 3] uint8 as an ``.mp4`` or ``.gif``, atomically."""
+    out = Path(out)
+    _check_video_path(out, fps)
+    suffix = out.suffix.lower()
+    bgr = np.asarray(frames)[..., ::-1]
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial{suffix}")
     if suffix == ".mp4":

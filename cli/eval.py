@@ -1,0 +1,84 @@
+"""``twist-eval``: evaluate teachers (on states) and distilled students (on images) in the
+simulator, on held-out scenes by default."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from twist_cli.common import out, run_app
+from twist_data.errors import ConfigError
+from twist_models.evaluation import EvalConfig, load_agent, run_evaluation
+
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+
+
+def parse_agents(specs: list[str]) -> dict[str, str]:
+    """``NAME=PATH`` or ``PATH`` (named after its kind and file) -> {name: path}."""
+    agents: dict[str, str] = {}
+    for spec in specs:
+        name, _, path = spec.rpartition("=")
+        if not name:
+            kind = load_agent(path).__class__.__name__
+            name = ("oracle" if kind == "StateAgent" else "student") + f"-{Path(path).stem}"
+        if name in agents:
+            raise ConfigError(f"two agents are named {name!r}; use NAME=PATH")
+        agents[name] = path
+    return agents
+
+
+def parse_seeds(seeds: str) -> list[int]:
+    try:
+        return [int(s) for s in seeds.split(",") if s.strip()]
+    except ValueError:
+        raise ConfigError(f"--seeds must be comma-separated integers, got {seeds!r}") from None
+
+
+@app.command()
+def main(
+    agent: Annotated[list[str], typer.Option(
+        help="Teacher checkpoint (the oracle, on states) or agent bundle (agent.pt, on "
+             "images), as PATH or NAME=PATH; repeat for several.")],
+    task: Annotated[str | None, typer.Option(help="Task [the first agent's].")] = None,
+    dr: Annotated[str, typer.Option(help="DR preset of the scenes.")] = "heldout",
+    backgrounds: Annotated[Path | None, typer.Option(
+        help="Folder of your own background images/videos.")] = None,
+    episodes: Annotated[int, typer.Option(help="Episodes per seed.")] = 100,
+    seeds: Annotated[str, typer.Option(help="Comma-separated evaluation seeds.")] = "0",
+    video: Annotated[int, typer.Option(help="Episodes per agent and seed to film.")] = 0,
+    out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("eval"),
+    device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
+    max_steps: Annotated[int | None, typer.Option(help="Agent steps per episode.")] = None,
+) -> None:
+    """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
+    agents = parse_agents(agent)
+    if task is None:
+        task = next((a.task for a in map(load_agent, agents.values()) if a.task), None)
+        if task is None:
+            raise ConfigError("no agent names its task; pass --task")
+    config = EvalConfig(task=task, dr=dr, episodes=episodes, max_steps=max_steps,
+                        backgrounds=None if backgrounds is None else str(backgrounds))
+    summary = run_evaluation(agents, config, parse_seeds(seeds), out_dir, video, device)
+    table = Table(title=f"{task}, DR {dr}, {episodes} episodes x {len(parse_seeds(seeds))} seeds")
+    for column in ("agent", "kind", "mean ± std (seeds)", "normalised IQM [95% CI]"):
+        table.add_column(column)
+    for name, s in summary["agents"].items():
+        iqm = ("" if "normalised_iqm" not in s else
+               f"{s['normalised_iqm']:.3f} [{s['normalised_iqm_ci95'][0]:.3f}, "
+               f"{s['normalised_iqm_ci95'][1]:.3f}]")
+        table.add_row(name, s["kind"], f"{s['mean']:.1f} ± {s['std_over_seeds']:.1f}", iqm)
+    out.print(table)
+    out.print(json.dumps(summary))
+
+
+def entry() -> None:
+    run_app(app, log_level=logging.INFO)
+
+
+if __name__ == "__main__":
+    entry()

@@ -1,0 +1,145 @@
+"""twist-eval: statistics against hand-computed values, scripted agents score what the
+environment pays, held-out DR is drawn once per episode, bad inputs are refused."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from twist_data.tasks import TaskEnv
+from twist_models.agent import Agent
+from twist_models.config import AgentConfig, student_preset, teacher_preset
+from twist_models.evaluation import (
+    EvalConfig,
+    EvalError,
+    ImageAgent,
+    ScriptedAgent,
+    evaluate,
+    run_evaluation,
+)
+from twist_models.statistics import iqm, stratified_bootstrap
+from twist_models.teacher import Teacher, save_teacher
+
+
+def test_iqm_of_known_arrays() -> None:
+    assert iqm(np.arange(1, 9)) == pytest.approx(4.5)  # mean of 3, 4, 5, 6
+    assert iqm(np.array([0.0, 10, 10, 10, 10, 10, 10, 1000])) == pytest.approx(10.0)
+    assert iqm(np.array([[1, 2, 3, 4], [4, 4, 4, 100]]), axis=1) == pytest.approx([2.5, 4.0])
+
+
+def test_bootstrap_interval_holds_the_estimate_and_shrinks_with_data() -> None:
+    rng = np.random.default_rng(0)
+    widths = []
+    for n in (10, 100, 1000):
+        strata = [rng.normal(0.8, 0.2, n), rng.normal(0.5, 0.3, n)]
+        interval = stratified_bootstrap(strata, seed=1)
+        assert interval.low <= interval.estimate <= interval.high
+        assert interval.estimate == pytest.approx(iqm(np.concatenate(strata)))
+        widths.append(interval.high - interval.low)
+    assert widths[0] > widths[1] > widths[2]
+    assert stratified_bootstrap([np.ones(3), np.ones(3)]).high == 1.0  # no spread, no width
+
+
+def _constant(value: float):
+    return lambda step: np.full(1, value, np.float32)
+
+
+def test_scripted_agent_scores_what_the_environment_pays(gl) -> None:
+    config = EvalConfig(task="cartpole-balance", dr="none", episodes=2, max_steps=30)
+    results = evaluate(ScriptedAgent(_constant(0.4)), config, seed=5)
+    assert [r.episode for r in results] == [0, 1] and all(r.steps == 30 for r in results)
+    env = TaskEnv("cartpole-balance", max_steps=30)
+    for result in results:
+        step, total = env.reset(seed=result.episode_seed), 0.0  # `none`: nominal dynamics
+        while not step.is_last:
+            step = env.step(np.full(1, 0.4, np.float32))
+            total += step.reward
+        assert result.episode_return == pytest.approx(total, rel=1e-6)
+    assert results[0].episode_return != pytest.approx(results[1].episode_return)
+
+
+def test_heldout_randomisation_is_drawn_once_per_episode(gl, monkeypatch) -> None:
+    from twist_data.render import DRRenderer
+
+    seen: list[dict[str, np.ndarray]] = []
+    original = DRRenderer.render
+
+    def spy(self, physics, params, *args, **kwargs):
+        seen.append({k: v.copy() for k, v in params.items()})
+        return original(self, physics, params, *args, **kwargs)
+
+    monkeypatch.setattr(DRRenderer, "render", spy)
+    config = EvalConfig(task="cartpole-balance", dr="heldout", episodes=2, max_steps=6)
+    frames: list[int] = []
+    evaluate(ScriptedAgent(_constant(0.0)), config, seed=0,
+             record=lambda episode, frame: frames.append(episode))
+    assert frames == [0] * 7 + [1] * 7 and len(seen) == 14
+    first, second = seen[:7], seen[7:]
+    for episode in (first, second):
+        for params in episode[1:]:
+            for key, value in params.items():
+                np.testing.assert_array_equal(value, episode[0][key], err_msg=key)
+    assert not np.array_equal(first[0]["colour"], second[0]["colour"])
+
+
+@pytest.fixture(scope="module")
+def agents(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A tiny random teacher and a student bundle built from it, for cartpole-balance."""
+    root = tmp_path_factory.mktemp("agents")
+    torch.manual_seed(0)
+    teacher = Teacher(teacher_preset("tiny", 5, 1))
+    teacher_path = save_teacher(root / "teacher.pt", teacher,
+                                extra={"collect": {"task": "cartpole-balance"}})
+    from twist_models.student import Student
+
+    student = Student(student_preset("tiny", teacher.config))
+    bundle = Agent.from_models(student, teacher, {"task": "cartpole-balance", "image_size": 64})
+    other = Agent(AgentConfig(student=student.config,
+                              actor_critic=teacher.config.actor_critic), {"task": "cup-catch"})
+    return {"teacher": teacher_path, "agent": bundle.save(root / "agent.pt"),
+            "other": other.save(root / "other.pt")}
+
+
+def test_oracle_and_student_meet_the_same_episodes(gl, agents, tmp_path) -> None:
+    config = EvalConfig(task="cartpole-balance", episodes=2, max_steps=10)
+    summary = run_evaluation({"oracle": agents["teacher"], "student": agents["agent"]}, config,
+                             [0, 1], tmp_path, videos=1)
+    table = pd.read_csv(tmp_path / "episodes.csv")
+    assert len(table) == 8
+    pairs = table.pivot_table(index=["seed", "episode"], columns="agent", values="episode_seed")
+    assert (pairs["oracle"] == pairs["student"]).all()
+    assert summary["agents"]["oracle"]["normalised_iqm"] == pytest.approx(
+        iqm(table.loc[table.agent == "oracle", "return"] / summary["oracle_mean"]))
+    assert json.loads((tmp_path / "summary.json").read_text()) == summary
+    assert (tmp_path / "student-seed1-episode0.mp4").stat().st_size > 0
+    assert (tmp_path / "returns.png").stat().st_size > 0
+
+
+def test_bad_inputs_are_refused(gl, agents, tmp_path) -> None:
+    with pytest.raises(EvalError, match="trained on 'cup-catch' but the evaluation task is"):
+        evaluate(ImageAgent(agents["other"]), EvalConfig(episodes=1, max_steps=2))
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "twist_cli.eval", *args, "--out",
+                               str(tmp_path / "out")], capture_output=True, text=True,
+                              timeout=300)
+
+    empty = tmp_path / "no-images"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("not an image")
+    for args, message in (
+            (["--agent", str(agents["agent"]), "--episodes", "0"], "episodes must be >= 1"),
+            (["--agent", str(agents["other"]), "--task", "cartpole-balance"], "'cup-catch'"),
+            (["--agent", str(agents["agent"]), "--backgrounds", str(empty), "--episodes", "1"],
+             "no-images"),
+            (["--agent", str(tmp_path / "missing.pt")], "does not exist")):
+        result = cli(*args)
+        assert result.returncode == 2, (args, result.stderr)
+        assert message in result.stderr and "Traceback" not in result.stderr, result.stderr

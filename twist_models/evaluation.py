@@ -1,0 +1,307 @@
+"""Evaluate agents in the simulator under a domain-randomisation setting (``twist-eval``).
+
+An agent is anything with ``uses_images``, ``reset()`` and ``act(step, image)``: the teacher
+acting on privileged state (the *oracle*), a distilled student bundle acting on one rendered
+view, or a scripted policy. Every agent evaluated with the same config and seed meets the same
+episodes: initial states, dynamics and DR parameters all derive from (seed, episode), so
+returns can be compared episode by episode.
+
+Held-out evaluation follows the paper: the DR parameters (background, colours, light, camera)
+are drawn **once per episode** and held for all its steps, whatever the preset's own
+``resample`` says.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import pandas as pd
+import torch
+
+from twist_data.errors import ConfigError, TwistError
+from twist_data.export import episode_strip, write_video
+from twist_data.randomisation import DR_PRESETS, DRConfig, derived_seed, dr_preset
+from twist_data.render import DRRenderer
+from twist_data.tasks import DEFAULT_TASK, Step, TaskEnv, task_spec
+from twist_models.agent import Agent, AgentState
+from twist_models.checkpoint import read_checkpoint
+from twist_models.collect import teacher_policy
+from twist_models.config import require_positive
+from twist_models.statistics import stratified_bootstrap
+from twist_models.teacher import load_teacher
+
+
+class EvalError(TwistError):
+    """An evaluation cannot run (agent, task or setting)."""
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Where and how long agents are evaluated."""
+
+    task: str = DEFAULT_TASK
+    """DMC task."""
+    dr: str = "heldout"
+    """DR preset of the scenes (``heldout``: backgrounds never seen in training)."""
+    backgrounds: str | None = None
+    """Folder of user images/videos replacing the preset's background bank."""
+    episodes: int = 100
+    """Episodes per seed (the paper: 100)."""
+    image_size: int = 64
+    """Rendered view side in pixels (the student's input size)."""
+    action_repeat: int = 2
+    """Simulator steps per agent step."""
+    max_steps: int | None = None
+    """Agent steps per episode; None: the task's limit."""
+
+    def __post_init__(self) -> None:
+        task_spec(self.task)
+        if self.dr not in DR_PRESETS:
+            raise ConfigError(f"unknown DR preset {self.dr!r}; valid: {', '.join(DR_PRESETS)}")
+        if self.episodes < 1:
+            raise ConfigError(f"episodes must be >= 1, got {self.episodes}")
+        require_positive(self, "image_size", "action_repeat")
+
+    def dr_config(self) -> DRConfig:
+        """The preset (with user backgrounds), drawn once per episode."""
+        return dataclasses.replace(dr_preset(self.dr, self.backgrounds), resample="episode")
+
+
+class EvalAgent(Protocol):
+    """What :func:`evaluate` drives."""
+
+    uses_images: bool
+
+    def reset(self) -> None: ...
+
+    def act(self, step: Step, image: np.ndarray | None) -> np.ndarray: ...
+
+
+class StateAgent:
+    """The teacher acting on privileged state with its actor's mode: the oracle."""
+
+    uses_images = False
+
+    def __init__(self, path: str | os.PathLike[str], device: str = "cpu") -> None:
+        self.teacher, checkpoint = load_teacher(path)
+        self.teacher.to_device(device).eval()
+        self.action_dim = self.teacher.config.world_model.action_dim
+        self.device = device
+        self.task = _collect_task(checkpoint.extra)
+        self.reset()
+
+    def reset(self) -> None:
+        self._policy = teacher_policy(self.teacher, self.action_dim, self.device, explore=False)
+
+    def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
+        return self._policy(step)
+
+
+class ImageAgent:
+    """A distilled student bundle acting on one rendered view."""
+
+    uses_images = True
+
+    def __init__(self, path: str | os.PathLike[str], device: str = "cpu") -> None:
+        self.agent = Agent.load(path, device)
+        self.task = self.agent.info.get("task")
+        self.image_size = self.agent.info.get("image_size")
+        self._state: AgentState | None = None
+
+    def reset(self) -> None:
+        self._state = None
+
+    def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
+        action, self._state = self.agent.act(image, self._state)
+        return action
+
+
+class ScriptedAgent:
+    """A function of the privileged step (tests, the random baseline)."""
+
+    uses_images = False
+
+    def __init__(self, policy: Callable[[Step], np.ndarray], task: str | None = None) -> None:
+        self.policy, self.task = policy, task
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
+        return self.policy(step)
+
+
+def _collect_task(extra: dict) -> str | None:
+    return (extra.get("collect") or {}).get("task") if isinstance(extra, dict) else None
+
+
+def load_agent(path: str | os.PathLike[str], device: str = "cpu") -> StateAgent | ImageAgent:
+    """A teacher checkpoint becomes the state oracle, an agent bundle the image agent."""
+    kind = read_checkpoint(path).kind
+    if kind == "teacher":
+        return StateAgent(path, device)
+    if kind == "agent":
+        return ImageAgent(path, device)
+    raise EvalError(f"{str(path)!r} holds a {kind}; evaluate a teacher checkpoint or an "
+                    "agent bundle (agent.pt from twist-distil)")
+
+
+def check_compatible(agent: EvalAgent, config: EvalConfig, name: str = "the agent") -> None:
+    """Refuse an agent trained for another task or image size than the evaluation's."""
+    task = getattr(agent, "task", None)
+    if task is not None and task != config.task:
+        raise EvalError(f"{name} was trained on {task!r} but the evaluation task is "
+                        f"{config.task!r}")
+    size = getattr(agent, "image_size", None)
+    if agent.uses_images and size is not None and size != config.image_size:
+        raise EvalError(f"{name} reads {size}px images but the evaluation renders "
+                        f"{config.image_size}px")
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """One evaluated episode."""
+
+    seed: int
+    episode: int
+    episode_seed: int
+    episode_return: float
+    steps: int
+
+
+def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
+             on_episode: Callable[[EpisodeResult], None] | None = None,
+             record: Callable[[int, np.ndarray], None] | None = None) -> list[EpisodeResult]:
+    """Run ``config.episodes`` episodes of ``agent``; ``record(episode, frame)`` receives the
+    rendered view of every step (for videos) when given."""
+    check_compatible(agent, config)
+    env = TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
+    render = agent.uses_images or record is not None
+    results = []
+    with DRRenderer(config.task, config.dr_config(), config.image_size, views=1) as renderer:
+        sampler = renderer.sampler(seed)
+        for i in range(config.episodes):
+            episode_seed = derived_seed(seed, 1 << 20, i)
+            step = env.reset(seed=episode_seed, dynamics=sampler.begin_episode(episode_seed))
+            agent.reset()
+            total, steps = 0.0, 0
+            while True:
+                image = renderer.render(step.physics, sampler.sample())[0] if render else None
+                if record is not None:
+                    record(i, image)
+                if step.is_last:
+                    break
+                with torch.no_grad():
+                    action = np.asarray(agent.act(step, image), np.float32)
+                step = env.step(np.clip(action, -1.0, 1.0))
+                total += step.reward
+                steps += 1
+            result = EpisodeResult(seed, i, episode_seed, total, steps)
+            results.append(result)
+            if on_episode is not None:
+                on_episode(result)
+    return results
+
+
+# -- a whole evaluation: several agents, seeds, files ---------------------------------------------
+EPISODE_COLUMNS = ("agent", "kind", "seed", "episode", "episode_seed", "return", "steps")
+
+
+def run_evaluation(agents: Mapping[str, str | os.PathLike[str]], config: EvalConfig,
+                   seeds: Sequence[int], out: str | os.PathLike[str], videos: int = 0,
+                   device: str = "cpu",
+                   on_episode: Callable[[str, EpisodeResult], None] | None = None
+                   ) -> dict[str, Any]:
+    """Evaluate every ``name: checkpoint`` on the same episodes for each seed and write
+    ``episodes.csv``, ``summary.json``, ``returns.png`` and ``videos`` mp4s per agent to
+    ``out``. Returns the summary: per agent the mean and std over seeds of the per-seed mean
+    return, and, when an oracle (a teacher checkpoint) is among the agents, every agent's
+    oracle-normalised IQM with a 95% bootstrap interval stratified by seed."""
+    if not agents:
+        raise EvalError("no agents to evaluate")
+    if not seeds:
+        raise EvalError("no seeds to evaluate")
+    out = Path(out)
+    loaded = {name: load_agent(path, device) for name, path in agents.items()}
+    for name, agent in loaded.items():
+        check_compatible(agent, config, f"agent {name!r} ({agents[name]})")
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name, agent in loaded.items():
+        kind = "oracle" if isinstance(agent, StateAgent) else "student"
+        for seed in seeds:
+            frames: dict[int, list[np.ndarray]] = {}
+            record = functools.partial(_keep_frame, frames, videos) if videos else None
+            report = None if on_episode is None else functools.partial(on_episode, name)
+            for r in evaluate(agent, config, seed, report, record):
+                rows.append({"agent": name, "kind": kind, "seed": seed, "episode": r.episode,
+                             "episode_seed": r.episode_seed, "return": r.episode_return,
+                             "steps": r.steps})
+            for episode, clip in frames.items():
+                write_video(episode_strip(np.stack(clip)[:, None]),
+                            out / f"{name}-seed{seed}-episode{episode}.mp4")
+    table = pd.DataFrame(rows, columns=EPISODE_COLUMNS)
+    table.to_csv(out / "episodes.csv", index=False)
+    summary = summarise(table, config)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    plot_returns(table, out / "returns.png", f"{config.task}, DR {config.dr}")
+    return summary
+
+
+def _keep_frame(frames: dict[int, list[np.ndarray]], videos: int, episode: int,
+                frame: np.ndarray) -> None:
+    if episode < videos:
+        frames.setdefault(episode, []).append(frame)
+
+
+def summarise(table: pd.DataFrame, config: EvalConfig) -> dict[str, Any]:
+    """Per-agent statistics of an ``episodes.csv`` table (see :func:`run_evaluation`)."""
+    oracles = table[table["kind"] == "oracle"]
+    oracle_mean = float(oracles["return"].mean()) if len(oracles) else None
+    agents = {}
+    for name, rows in table.groupby("agent", sort=False):
+        per_seed = rows.groupby("seed")["return"].mean()
+        entry: dict[str, Any] = {
+            "kind": rows["kind"].iloc[0], "episodes": len(rows), "seeds": len(per_seed),
+            "mean": float(per_seed.mean()),
+            "std_over_seeds": float(per_seed.std(ddof=0)),
+            "std_over_episodes": float(rows["return"].std(ddof=0))}
+        if oracle_mean:
+            strata = [g["return"].to_numpy() / oracle_mean for _, g in rows.groupby("seed")]
+            interval = stratified_bootstrap(strata)
+            entry["normalised_iqm"] = interval.estimate
+            entry["normalised_iqm_ci95"] = [interval.low, interval.high]
+        agents[name] = entry
+    return {"task": config.task, "dr": config.dr, "backgrounds": config.backgrounds,
+            "episodes_per_seed": config.episodes, "oracle_mean": oracle_mean, "agents": agents}
+
+
+def plot_returns(table: pd.DataFrame, out: str | os.PathLike[str], title: str) -> Path:
+    """Box plot of episode returns per agent."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    names = list(dict.fromkeys(table["agent"]))
+    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(names), 3.4), dpi=120)
+    try:
+        ax.boxplot([table.loc[table["agent"] == n, "return"] for n in names], showmeans=True)
+        ax.set_xticks(range(1, len(names) + 1), names, fontsize=8)
+        ax.set_ylabel("episode return")
+        ax.set_title(title, fontsize=9)
+        ax.grid(alpha=0.3, axis="y")
+        fig.tight_layout()
+        out = Path(out)
+        fig.savefig(out)
+    finally:
+        plt.close(fig)
+    return out
