@@ -150,10 +150,11 @@ class DistilConfig:
 DISTIL_PRESETS: dict[str, DistilConfig] = {
     # The paper's batch, window and horizon; Eq. 4 from every posterior state.
     "paper": DistilConfig(student="paper", steps=50_000),
-    # CPU demo (~2 s per update on 2 cores, the CNN on 800 frames dominates): quick sizes,
-    # Eq. 4 from 256 states per update.
+    # CPU demo (~1 s per update on 2 cores, the CNN on 800 frames dominates): quick sizes,
+    # Eq. 4 from 256 states per update; windows decoded in-process, since a loader process
+    # takes a core from the update on a 2-core machine (benchmarks/distil_update.py).
     "quick": DistilConfig(student="quick", steps=800, imag_starts=256, eval_every=50,
-                          checkpoint_every=50, snapshot_every=400),
+                          checkpoint_every=50, snapshot_every=400, workers=0),
     # Tests: seconds.
     "tiny": DistilConfig(student="tiny", steps=6, batch_size=2, length=8, horizon=3,
                          imag_starts=8, eval_every=3, checkpoint_every=2, snapshot_every=4,
