@@ -183,25 +183,40 @@ class WorldModelConfig:
     """Adam learning rate of the world model."""
     kl_scale: float = 1.0
     """Weight of the KL term in the world-model loss."""
+    recon: str = "obs"
+    """What the decoder reconstructs: ``obs`` (what the encoder read) or ``state`` (the
+    privileged state from images: the paper's State Recon baseline)."""
 
     def __post_init__(self) -> None:
         if self.obs not in ("state", "image"):
             raise ConfigError(f"obs must be 'state' or 'image', got {self.obs!r}")
+        if self.recon not in ("obs", "state"):
+            raise ConfigError(f"recon must be 'obs' or 'state', got {self.recon!r}")
         require_positive(self, "action_dim", "model_lr")
-        if self.obs == "state":
+        if self.obs == "state" or self.recon == "state":
             require_positive(self, "state_dim")
+
+    @property
+    def decodes_state(self) -> bool:
+        return self.obs == "state" or self.recon == "state"
 
 
 @dataclass(frozen=True)
-class TeacherConfig:
-    """The state teacher: a state world model plus actor-critic."""
+class DreamerConfig:
+    """A Dreamer agent: a world model (on state or images) plus actor-critic in imagination."""
 
     world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
-    """World model on privileged state."""
+    """World model."""
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     """Behaviour learning."""
     optim: OptimConfig = field(default_factory=OptimConfig)
     """Optimiser settings."""
+
+
+@dataclass(frozen=True)
+class TeacherConfig(DreamerConfig):
+    """The state teacher: a Dreamer whose world model reads privileged state."""
+
     explore_noise: float = 0.0
     """Std of Gaussian noise added to sampled actions when acting with ``explore=True``
     (DreamerV2 explores by sampling its stochastic actor; this adds more on top)."""
@@ -267,6 +282,20 @@ def teacher_preset(name: str, state_dim: int, action_dim: int) -> TeacherConfig:
     world_model = WorldModelConfig(obs="state", state_dim=state_dim, action_dim=action_dim,
                                    **PRESETS[name])
     return TeacherConfig(world_model=world_model,
+                         actor_critic=ActorCriticConfig(**_AC_PRESETS[name]))
+
+
+def image_dreamer_preset(name: str, state_dim: int, action_dim: int, image_size: int = 64,
+                         recon: str = "obs") -> DreamerConfig:
+    """A Dreamer of preset ``name`` sizes on images (the paper's Dreamer baselines), decoding
+    the image (``recon="obs"``) or the privileged state (``recon="state"``: State Recon)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
+    sizes = dict(PRESETS[name])
+    sizes["cnn"] = dataclasses.replace(sizes.get("cnn", CNNConfig()), image_size=image_size)
+    world_model = WorldModelConfig(obs="image", state_dim=state_dim, action_dim=action_dim,
+                                   recon=recon, **sizes)
+    return DreamerConfig(world_model=world_model,
                          actor_critic=ActorCriticConfig(**_AC_PRESETS[name]))
 
 

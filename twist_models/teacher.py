@@ -16,7 +16,7 @@ from torch import nn
 from twist_data.errors import CheckpointError, CheckpointMismatchError
 from twist_models.actor_critic import ActorCritic
 from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
-from twist_models.config import TeacherConfig, from_json
+from twist_models.config import DreamerConfig, TeacherConfig, from_json
 from twist_models.rssm import State
 from twist_models.world_model import WorldModel
 
@@ -24,10 +24,10 @@ from twist_models.world_model import WorldModel
 FINAL_TEACHER = "teacher.pt"
 
 
-class Teacher(nn.Module):
-    """World model on state + actor-critic in imagination."""
+class Dreamer(nn.Module):
+    """A world model (on state or images) + actor-critic in imagination, DreamerV2."""
 
-    def __init__(self, config: TeacherConfig) -> None:
+    def __init__(self, config: DreamerConfig) -> None:
         super().__init__()
         self.config = config
         wm = config.world_model
@@ -39,7 +39,7 @@ class Teacher(nn.Module):
                                            weight_decay=config.optim.weight_decay)
         self.register_buffer("step", torch.zeros((), dtype=torch.int64))
 
-    def to_device(self, device: torch.device | str) -> Teacher:
+    def to_device(self, device: torch.device | str) -> Dreamer:
         """Move weights and optimiser moments to ``device``. (``Module.to`` alone leaves the
         moments of a restored checkpoint on the CPU; Adam's scalar step counters stay there
         by design.)"""
@@ -56,8 +56,8 @@ class Teacher(nn.Module):
                 "critic": self.actor_critic.critic_opt}
 
     def train_step(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
-        """Update the world model on ``batch`` ({k: [B, T, ...]}: state, action, reward,
-        is_first, ...), then the actor-critic from imagination started at every posterior
+        """Update the world model on ``batch`` ({k: [B, T, ...]}: state or image, action,
+        reward, is_first, ...), then the actor-critic from imagination started at every posterior
         state. Returns scalar metrics."""
         loss, post, metrics = self.world_model.loss(batch)
         self.model_opt.zero_grad(set_to_none=True)
@@ -69,6 +69,12 @@ class Teacher(nn.Module):
         metrics.update(self.actor_critic.train_step(self.world_model, start))
         self.step += 1
         return {k: float(v) for k, v in metrics.items()}
+
+
+class Teacher(Dreamer):
+    """The state teacher: a Dreamer on privileged state that acts in the simulator."""
+
+    config: TeacherConfig
 
     @torch.no_grad()
     def policy(self, state: torch.Tensor, latent: State | None, prev_action: torch.Tensor,

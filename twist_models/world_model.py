@@ -12,11 +12,13 @@ from twist_models.rssm import RSSM, State
 
 
 class WorldModel(nn.Module):
-    """DreamerV2's world model on privileged state (teacher) or 64x64 images (student).
+    """DreamerV2's world model on privileged state (the teacher) or 64x64 images (the image
+    baselines).
 
     Batches are dicts of [B, T, ...] tensors in the dataset's time convention: ``state`` [S]
-    or ``image`` [H, W, 3] uint8, ``action`` [A] (the action that led to step t), ``reward``,
-    ``is_first``, and ``is_terminal`` when the discount head is on.
+    or ``image`` [H, W, 3] uint8 (and ``state`` when the decoder reconstructs it),
+    ``action`` [A] (the action that led to step t), ``reward``, ``is_first``, and
+    ``is_terminal`` when the discount head is on.
     """
 
     def __init__(self, config: WorldModelConfig) -> None:
@@ -29,7 +31,7 @@ class WorldModel(nn.Module):
             self.encoder = ImageEncoder(c.cnn)
         self.rssm = RSSM(c.rssm, c.action_dim, self.encoder.out_dim)
         feature = c.rssm.feature_dim
-        if c.obs == "state":
+        if c.decodes_state:
             self.decoder: nn.Module = MLP(feature, c.state_dim, c.state_mlp)
         else:
             self.decoder = ImageDecoder(feature, c.cnn)
@@ -52,8 +54,8 @@ class WorldModel(nn.Module):
         feature = self.rssm.feature(post)
         kl_loss, kl = kl_balance_loss(post["logits"], prior["logits"], c.rssm.kl_balance,
                                       c.rssm.free_nats)
-        if c.obs == "state":
-            recon = gaussian_nll(self.decoder(feature), obs).mean()
+        if c.decodes_state:
+            recon = gaussian_nll(self.decoder(feature), batch["state"]).mean()
         else:
             recon = gaussian_nll(self.decoder(feature), preprocess_image(obs), 3).mean()
         reward = gaussian_nll(self.reward_head(feature).squeeze(-1), batch["reward"], 0).mean()

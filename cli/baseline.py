@@ -1,0 +1,71 @@
+"""``twist-baseline``: train an offline image baseline (Dreamer, State Recon) from D."""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
+
+from twist_cli.common import err, out, run_app
+from twist_models.baselines import KINDS, BaselineConfig, train_baseline
+from twist_models.baselines import Progress as BaselineProgress
+
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+
+
+@app.command()
+def main(
+    dataset: Annotated[Path, typer.Option(help="Matching dataset folder.")],
+    kind: Annotated[str, typer.Option(help=f"Baseline: {', '.join(KINDS)}.")] = "dreamer",
+    out_dir: Annotated[Path | None, typer.Option(
+        "--out", help="Run folder [<dataset>/baseline-<kind>].")] = None,
+    preset: Annotated[str, typer.Option(help="Model sizes: tiny, quick, paper.")] = "quick",
+    steps: Annotated[int, typer.Option(help="Updates (the student's budget).")] = 800,
+    batch: Annotated[int, typer.Option(help="Windows per update.")] = 16,
+    length: Annotated[int, typer.Option(help="Steps per window.")] = 50,
+    view: Annotated[int | None, typer.Option(help="Camera view [random per step].")] = None,
+    seed: Annotated[int, typer.Option(help="Run seed.")] = 0,
+    device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
+    resume: Annotated[bool, typer.Option("--resume", help="Continue a run in --out.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+) -> None:
+    """Train a Dreamer (image reconstruction) or State Recon baseline offline on D, ending in
+    an agent bundle that twist-eval evaluates like the student."""
+    config = BaselineConfig(kind=kind, model=preset, steps=steps, batch_size=batch,
+                            length=length, view=view, seed=seed)
+    folder = out_dir if out_dir is not None else dataset / f"baseline-{kind}"
+    with progress_bar(quiet) as report:
+        summary = train_baseline(dataset, folder, config, resume=resume, device=device,
+                                 on_progress=report)
+    out.print(json.dumps(summary, indent=2))
+
+
+@contextmanager
+def progress_bar(quiet: bool) -> Iterator[Callable[[BaselineProgress], None] | None]:
+    if quiet:
+        yield None
+        return
+    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TextColumn("{task.fields[stats]}"), TimeRemainingColumn(),
+                  console=err) as bar:
+        task = bar.add_task("training", total=None, stats="")
+
+        def report(p: BaselineProgress) -> None:
+            bar.update(task, completed=p.updates, total=p.total,
+                       stats=f"{p.updates_per_second:.2f} updates/s, loss {p.model_loss:.3f}")
+
+        yield report
+
+
+def entry() -> None:
+    run_app(app, log_level=logging.INFO)
+
+
+if __name__ == "__main__":
+    entry()

@@ -1,0 +1,192 @@
+"""Offline image baselines trained from the same matching dataset D as the student (issue 7).
+
+* ``dreamer``: DreamerV2 on D's images: an image world model (reconstruction, reward, KL)
+  with its own actor-critic in imagination; the paper's *Dreamer w/ DR* on the randomised
+  renders, and *Dreamer w/o DR* on a clean re-render of D
+  (``twist-data render D D-clean --dr none --views 1``).
+* ``state-recon``: the same, but its decoder reconstructs the privileged state instead of the
+  image (the paper's *State Recon*).
+
+Both read windows of D exactly as the distiller does (same held-out split, a random view per
+step) and end in the same deployable bundle as the student (``agent.pt``: image encoder,
+RSSM and actor), so ``twist-eval`` treats every image agent alike. A fair comparison gives
+them the student's update budget (``--steps``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch.utils.data import DataLoader
+
+from twist_data.errors import ConfigError, TwistError
+from twist_data.randomisation import derived_seed
+from twist_data.reader import open_dataset
+from twist_data.sampler import SamplerConfig, WindowDataset
+from twist_models.agent import Agent
+from twist_models.checkpoint import read_checkpoint, restore, save_checkpoint
+from twist_models.config import (
+    PRESETS,
+    AgentConfig,
+    DreamerConfig,
+    StudentConfig,
+    image_dreamer_preset,
+    require_non_negative,
+    require_positive,
+    to_json,
+)
+from twist_models.runlog import append_csv
+from twist_models.teacher import Dreamer
+
+log = logging.getLogger(__name__)
+
+KINDS = {"dreamer": "obs", "state-recon": "state"}
+KEYS = ("image", "state", "action", "reward", "is_first", "is_terminal")
+METRIC_COLUMNS = ("updates", "wall_s", "updates_per_s", "model_loss", "recon_loss",
+                  "reward_loss", "kl", "actor_loss", "critic_loss", "imagined_return")
+
+
+class BaselineError(TwistError):
+    """A baseline cannot be trained (inputs, output folder)."""
+
+
+@dataclass(frozen=True)
+class BaselineConfig:
+    """One offline baseline run."""
+
+    kind: str = "dreamer"
+    """``dreamer`` (image reconstruction) or ``state-recon`` (state reconstruction)."""
+    model: str = "quick"
+    """Size preset of world model and actor-critic (``tiny``, ``quick``, ``paper``)."""
+    steps: int = 800
+    """Updates (give the student's budget for a fair comparison)."""
+    batch_size: int = 16
+    """Windows per update."""
+    length: int = 50
+    """Steps per window."""
+    imag_starts: int = 256
+    """Posterior states that start imagination (0 = all B*L)."""
+    view: int | None = None
+    """Camera view; None: a random one of the K per step, as the student."""
+    holdout_every: int = 10
+    """Every n-th episode of D is held out (the distiller's split)."""
+    seed: int = 0
+    """Seed of initialisation and windows."""
+    log_every: int = 50
+    """Updates between metrics.csv rows."""
+    checkpoint_every: int = 50
+    """Updates between writes of ``latest.pt``."""
+    workers: int = 0
+    """DataLoader processes (0: decode in the training process)."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ConfigError(f"unknown baseline {self.kind!r}; valid: {', '.join(KINDS)}")
+        if self.model not in PRESETS:
+            raise ConfigError(f"unknown model preset {self.model!r}; valid: {', '.join(PRESETS)}")
+        require_positive(self, "steps", "batch_size", "length", "log_every", "checkpoint_every")
+        require_non_negative(self, "imag_starts", "workers")
+        if self.holdout_every < 2:
+            raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Reported every ``log_every`` updates."""
+
+    updates: int
+    total: int
+    updates_per_second: float
+    model_loss: float
+
+
+def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
+                   config: BaselineConfig, resume: bool = False, device: str = "cpu",
+                   on_progress: Callable[[Progress], None] | None = None) -> dict[str, Any]:
+    """Train baseline ``config.kind`` offline on D and write ``out/agent.pt``; returns the
+    run summary (also ``summary.json``)."""
+    dataset, out = Path(dataset), Path(out)
+    if not dataset.exists():
+        raise BaselineError(f"dataset {str(dataset)!r} does not exist")
+    spec = open_dataset(dataset).spec
+    dreamer_config = image_dreamer_preset(config.model, spec.state_dim, spec.action_dim,
+                                          spec.image_height, recon=KINDS[config.kind])
+    dreamer_config = dataclasses.replace(dreamer_config, actor_critic=dataclasses.replace(
+        dreamer_config.actor_critic, imag_starts=config.imag_starts))
+    out.mkdir(parents=True, exist_ok=True)
+    stored, latest = out / "config.json", out / "latest.pt"
+    if stored.exists() and not resume:
+        raise BaselineError(f"{str(out)!r} already holds a baseline run; pass --resume to "
+                            "continue it, or another --out")
+    if resume and stored.exists():
+        before = json.loads(stored.read_text())["baseline"]
+        changed = [k for k, v in to_json(config).items() if k != "steps" and before.get(k) != v]
+        if changed:
+            raise BaselineError(f"--resume with a different config ({', '.join(changed)}); "
+                                "only --steps may change when resuming")
+    torch.manual_seed(config.seed)
+    model = Dreamer(dreamer_config)
+    if latest.exists():
+        checkpoint = read_checkpoint(latest, kind="dreamer")
+        restore(checkpoint, model, dreamer_config, model.optimisers())
+    model.to_device(device)
+    stored.write_text(json.dumps({"baseline": to_json(config), "dreamer": to_json(dreamer_config),
+                                  "dataset": str(dataset)}, indent=2))
+    sampler = SamplerConfig(length=config.length, batch_size=config.batch_size,
+                            view=config.view, keys=KEYS, holdout_every=config.holdout_every,
+                            split="train", seed=derived_seed(config.seed, int(model.step)))
+    try:
+        windows = iter(DataLoader(WindowDataset(dataset, sampler), batch_size=None,
+                                  num_workers=config.workers))
+    except TwistError as exc:
+        raise BaselineError(f"no training windows: {exc}") from None
+    sums: dict[str, float] = {}
+    done, tick = 0, time.perf_counter()
+    while int(model.step) < config.steps:
+        batch = {k: v.to(device) for k, v in next(windows).items() if k in KEYS}
+        for key, value in model.train_step(batch).items():
+            sums[key] = sums.get(key, 0.0) + value
+        done += 1
+        updates = int(model.step)
+        if updates % config.log_every == 0 or updates == config.steps:
+            elapsed = time.perf_counter() - tick
+            row = {"updates": updates, "wall_s": round(elapsed, 2),
+                   "updates_per_s": done / elapsed, **{k: v / done for k, v in sums.items()}}
+            append_csv(out / "metrics.csv", row, METRIC_COLUMNS)
+            if on_progress is not None:
+                on_progress(Progress(updates, config.steps, row["updates_per_s"],
+                                     row["model_loss"]))
+            sums, done, tick = {}, 0, time.perf_counter()
+        if updates % config.checkpoint_every == 0 or updates == config.steps:
+            save_checkpoint(latest, "dreamer", model, dreamer_config, model.optimisers(),
+                            {"updates": updates})
+    agent = image_agent(model, {"task": spec.task, "action_repeat": spec.action_repeat,
+                                "image_size": spec.image_height, "dataset": str(dataset),
+                                "baseline": config.kind, "updates": int(model.step)})
+    path = agent.save(out / "agent.pt")
+    summary = {"kind": config.kind, "updates": int(model.step), "agent": str(path),
+               "out": str(out)}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def image_agent(model: Dreamer, info: dict[str, Any]) -> Agent:
+    """The deployable bundle of an image Dreamer: its encoder, RSSM and actor."""
+    wm = model.world_model
+    config: DreamerConfig = model.config
+    student = StudentConfig(rssm=config.world_model.rssm,
+                            action_dim=config.world_model.action_dim, cnn=config.world_model.cnn)
+    agent = Agent(AgentConfig(student=student, actor_critic=config.actor_critic), info)
+    agent.student.encoder.load_state_dict(wm.encoder.state_dict())
+    agent.student.rssm.load_state_dict(wm.rssm.state_dict())
+    agent.actor.load_state_dict(model.actor_critic.actor.state_dict())
+    return agent
