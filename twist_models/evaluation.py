@@ -236,7 +236,8 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str]], config: EvalCon
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, agent in loaded.items():
-        kind = "oracle" if isinstance(agent, StateAgent) else "student"
+        kind = ("oracle" if isinstance(agent, StateAgent)
+                else agent.agent.info.get("baseline", "student"))
         for seed in seeds:
             frames: dict[int, list[np.ndarray]] = {}
             record = functools.partial(_keep_frame, frames, videos) if videos else None
