@@ -178,7 +178,9 @@ def test_tiny_world_model_overfits_a_toy_sequence() -> None:
     assert metrics["reward_loss"].item() - 0.5 * np.log(2 * np.pi) < 0.02
 
 
-def test_actor_critic_learns_the_known_optimal_action_of_a_toy_task() -> None:
+@pytest.mark.parametrize("actor_grad, return_norm", [("dynamics", False), ("reinforce", True)])
+def test_actor_critic_learns_the_known_optimal_action_of_a_toy_task(actor_grad: str,
+                                                                     return_norm: bool) -> None:
     """1-D toy: the state is the last action and arriving with action a pays 1 - a^2, so the
     optimal action is 0 whatever the state. The optimum sits at the centre of the action box on
     purpose: a truncated-normal actor facing an off-centre optimum rightly shifts its mean away
@@ -188,7 +190,8 @@ def test_actor_critic_learns_the_known_optimal_action_of_a_toy_task() -> None:
     config = dataclasses.replace(
         config, world_model=dataclasses.replace(config.world_model, model_lr=1e-3),
         actor_critic=dataclasses.replace(config.actor_critic, actor_lr=3e-4, critic_lr=3e-4,
-                                         horizon=5))
+                                         horizon=5, actor_grad=actor_grad,
+                                         return_norm=return_norm))
     teacher = Teacher(config)
     b, t = 16, 10
     is_first = torch.zeros(b, t, dtype=torch.bool)
