@@ -4,15 +4,12 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 
-from twist_cli.common import err, out, run_app
+from twist_cli.common import out, progress_bar, run_app
 from twist_models.baselines import KINDS, BaselineConfig, train_baseline
 from twist_models.baselines import Progress as BaselineProgress
 
@@ -40,27 +37,15 @@ def main(
     config = BaselineConfig(kind=kind, model=preset, steps=steps, batch_size=batch,
                             length=length, view=view, seed=seed)
     folder = out_dir if out_dir is not None else dataset / f"baseline-{kind}"
-    with progress_bar(quiet) as report:
+    with progress_bar(quiet, "training", describe) as report:
         summary = train_baseline(dataset, folder, config, resume=resume, device=device,
                                  on_progress=report)
     out.print(json.dumps(summary, indent=2))
 
 
-@contextmanager
-def progress_bar(quiet: bool) -> Iterator[Callable[[BaselineProgress], None] | None]:
-    if quiet:
-        yield None
-        return
-    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-                  TextColumn("{task.fields[stats]}"), TimeRemainingColumn(),
-                  console=err) as bar:
-        task = bar.add_task("training", total=None, stats="")
-
-        def report(p: BaselineProgress) -> None:
-            bar.update(task, completed=p.updates, total=p.total,
-                       stats=f"{p.updates_per_second:.2f} updates/s, loss {p.model_loss:.3f}")
-
-        yield report
+def describe(p: BaselineProgress) -> tuple[int, int, str]:
+    """The bar's figures: updates/s and the world-model loss."""
+    return p.updates, p.total, f"{p.updates_per_second:.2f} updates/s, loss {p.model_loss:.3f}"
 
 
 def entry() -> None:

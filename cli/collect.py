@@ -5,15 +5,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 
-from twist_cli.common import err, out, run_app
+from twist_cli.common import out, progress_bar, run_app
 from twist_data.tasks import DEFAULT_TASK
 from twist_models.collect import COLLECT_PRESETS, collect, collect_preset, run_dir, stored_config
 from twist_models.collect import Progress as CollectProgress
@@ -62,30 +59,17 @@ def main(
         config = dataclasses.replace(stored_config(out_dir, name), **given)
     else:
         config = collect_preset(preset, **given)
-    with progress_bar(quiet) as report:
+    with progress_bar(quiet, "collecting", describe) as report:
         summary = collect(out_dir, config, shard=name, resume=resume, device=device,
                           on_progress=report)
     out.print(json.dumps(summary.to_json(), indent=2))
 
 
-@contextmanager
-def progress_bar(quiet: bool) -> Iterator[Callable[[CollectProgress], None] | None]:
-    """A Rich bar on stderr with frames/s, the last episode return and the latest eval."""
-    if quiet:
-        yield None
-        return
-    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-                  TextColumn("{task.fields[stats]}"), TimeRemainingColumn(),
-                  console=err) as bar:
-        task = bar.add_task("collecting", total=None, stats="")
-
-        def report(p: CollectProgress) -> None:
-            evaluation = "" if p.eval_return is None else f", eval {p.eval_return:.0f}"
-            stats = (f"{p.frames_per_second:.0f} frames/s, return {p.episode_return:.0f}"
-                     f"{evaluation}, {p.updates} updates")
-            bar.update(task, completed=p.frames, total=p.total_frames, stats=stats)
-
-        yield report
+def describe(p: CollectProgress) -> tuple[int, int, str]:
+    """The bar's figures: frames/s, the last episode return and the latest evaluation."""
+    evaluation = "" if p.eval_return is None else f", eval {p.eval_return:.0f}"
+    return p.frames, p.total_frames, (f"{p.frames_per_second:.0f} frames/s, return "
+                                      f"{p.episode_return:.0f}{evaluation}, {p.updates} updates")
 
 
 def entry() -> None:

@@ -4,11 +4,17 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import TypeVar
 
 import typer
 from rich.console import Console
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 
 from twist_data.errors import TwistError
+
+P = TypeVar("P")
 
 out = Console()
 err = Console(stderr=True)
@@ -25,3 +31,24 @@ def run_app(app: typer.Typer, log_level: int = logging.WARNING) -> None:
     except TwistError as exc:
         err.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
         sys.exit(2)
+
+
+@contextmanager
+def progress_bar(quiet: bool, description: str,
+                 describe: Callable[[P], tuple[int, int, str]]
+                 ) -> Iterator[Callable[[P], None] | None]:
+    """A Rich bar on stderr with an ETA; the yielded callback takes a library progress report,
+    which ``describe`` turns into (done, total, text). Yields None when ``quiet``."""
+    if quiet:
+        yield None
+        return
+    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TextColumn("{task.fields[stats]}"), TimeRemainingColumn(),
+                  console=err) as bar:
+        task = bar.add_task(description, total=None, stats="")
+
+        def report(progress: P) -> None:
+            done, total, stats = describe(progress)
+            bar.update(task, completed=done, total=total, stats=stats)
+
+        yield report

@@ -5,15 +5,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 
-from twist_cli.common import err, out, run_app
+from twist_cli.common import out, progress_bar, run_app
 from twist_models.distill import (
     DISTIL_PRESETS,
     distil,
@@ -65,30 +62,17 @@ def main(
     else:
         config = distil_preset(preset, **given)
     device = initialise_distributed(device)
-    with progress_bar(quiet) as report:
+    with progress_bar(quiet, "distilling", describe) as report:
         summary = distil(dataset, folder, config, teacher=teacher, resume=resume, device=device,
                          on_progress=report)
     out.print(json.dumps(summary.to_json(), indent=2))
 
 
-@contextmanager
-def progress_bar(quiet: bool) -> Iterator[Callable[[DistilProgress], None] | None]:
-    """A Rich bar on stderr with updates/s, data-wait share, loss and held-out h-MSE."""
-    if quiet:
-        yield None
-        return
-    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-                  TextColumn("{task.fields[stats]}"), TimeRemainingColumn(),
-                  console=err) as bar:
-        task = bar.add_task("distilling", total=None, stats="")
-
-        def report(p: DistilProgress) -> None:
-            stats = (f"{p.updates_per_second:.2f} updates/s, data wait "
-                     f"{100 * p.data_wait_share:.1f}%, loss {p.loss:.3f}, held-out h-MSE "
-                     f"{p.heldout_h_mse:.4f}")
-            bar.update(task, completed=p.updates, total=p.total, stats=stats)
-
-        yield report
+def describe(p: DistilProgress) -> tuple[int, int, str]:
+    """The bar's figures: updates/s, data-wait share, loss and held-out h-MSE."""
+    return p.updates, p.total, (f"{p.updates_per_second:.2f} updates/s, data wait "
+                                f"{100 * p.data_wait_share:.1f}%, loss {p.loss:.3f}, held-out "
+                                f"h-MSE {p.heldout_h_mse:.4f}")
 
 
 def entry() -> None:

@@ -13,22 +13,23 @@ from rich.table import Table
 
 from twist_cli.common import out, run_app
 from twist_data.errors import ConfigError
-from twist_models.evaluation import EvalConfig, load_agent, run_evaluation
+from twist_models.evaluation import EvalConfig, ImageAgent, StateAgent, load_agent, run_evaluation
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
 
 
-def parse_agents(specs: list[str]) -> dict[str, str]:
-    """``NAME=PATH`` or ``PATH`` (named after its kind and file) -> {name: path}."""
-    agents: dict[str, str] = {}
+def parse_agents(specs: list[str], device: str) -> dict[str, StateAgent | ImageAgent]:
+    """``NAME=PATH`` or ``PATH`` (named after its kind and file) -> {name: loaded agent}."""
+    agents: dict[str, StateAgent | ImageAgent] = {}
     for spec in specs:
         name, _, path = spec.rpartition("=")
+        agent = load_agent(path, device)
         if not name:
-            kind = load_agent(path).__class__.__name__
-            name = ("oracle" if kind == "StateAgent" else "student") + f"-{Path(path).stem}"
+            kind = "oracle" if isinstance(agent, StateAgent) else "student"
+            name = f"{kind}-{Path(path).stem}"
         if name in agents:
             raise ConfigError(f"two agents are named {name!r}; use NAME=PATH")
-        agents[name] = path
+        agents[name] = agent
     return agents
 
 
@@ -56,9 +57,9 @@ def main(
     max_steps: Annotated[int | None, typer.Option(help="Agent steps per episode.")] = None,
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
-    agents = parse_agents(agent)
+    agents = parse_agents(agent, device)
     if task is None:
-        task = next((a.task for a in map(load_agent, agents.values()) if a.task), None)
+        task = next((a.task for a in agents.values() if a.task), None)
         if task is None:
             raise ConfigError("no agent names its task; pass --task")
     config = EvalConfig(task=task, dr=dr, episodes=episodes, max_steps=max_steps,

@@ -19,9 +19,9 @@ from twist_models.config import AgentConfig, student_preset, teacher_preset
 from twist_models.evaluation import (
     EvalConfig,
     EvalError,
-    ImageAgent,
     ScriptedAgent,
     evaluate,
+    load_agent,
     run_evaluation,
 )
 from twist_models.statistics import iqm, stratified_bootstrap
@@ -124,7 +124,7 @@ def test_oracle_and_student_meet_the_same_episodes(gl, agents, tmp_path) -> None
 
 def test_bad_inputs_are_refused(gl, agents, tmp_path) -> None:
     with pytest.raises(EvalError, match="trained on 'cup-catch' but the evaluation task is"):
-        evaluate(ImageAgent(agents["other"]), EvalConfig(episodes=1, max_steps=2))
+        evaluate(load_agent(agents["other"]), EvalConfig(episodes=1, max_steps=2))
 
     def cli(*args: str) -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, "-m", "twist_cli.eval", *args, "--out",

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from twist_models.actor_critic import Actor
-from twist_models.checkpoint import read_checkpoint, restore, save_checkpoint
+from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
 from twist_models.config import AgentConfig, from_json
 from twist_models.rssm import State
 from twist_models.student import Student
@@ -88,7 +88,12 @@ class Agent(nn.Module):
     @classmethod
     def load(cls, path: str | os.PathLike[str], device: str | torch.device = "cpu") -> Agent:
         """Read a bundle written by :meth:`save` (no code is unpickled)."""
-        checkpoint = read_checkpoint(path, kind="agent")
+        return cls.from_checkpoint(read_checkpoint(path, kind="agent"), device)
+
+    @classmethod
+    def from_checkpoint(cls, checkpoint: Checkpoint, device: str | torch.device = "cpu"
+                        ) -> Agent:
+        """:meth:`load` for a bundle already read."""
         config = from_json(AgentConfig, checkpoint.config)
         agent = cls(config, checkpoint.extra)
         restore(checkpoint, agent, config)

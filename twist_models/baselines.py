@@ -44,7 +44,7 @@ from twist_models.config import (
     require_positive,
     to_json,
 )
-from twist_models.runlog import append_csv
+from twist_models.runlog import append_csv, prepare_output, refuse_resume, resume_conflicts
 from twist_models.teacher import Dreamer
 
 log = logging.getLogger(__name__)
@@ -122,17 +122,14 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
                                           spec.image_height, recon=KINDS[config.kind])
     dreamer_config = dataclasses.replace(dreamer_config, actor_critic=dataclasses.replace(
         dreamer_config.actor_critic, imag_starts=config.imag_starts))
-    out.mkdir(parents=True, exist_ok=True)
+    prepare_output(out, BaselineError)
     stored, latest = out / "config.json", out / "latest.pt"
     if stored.exists() and not resume:
         raise BaselineError(f"{str(out)!r} already holds a baseline run; pass --resume to "
                             "continue it, or another --out")
     if resume and stored.exists():
         before = json.loads(stored.read_text())["baseline"]
-        changed = [k for k, v in to_json(config).items() if k != "steps" and before.get(k) != v]
-        if changed:
-            raise BaselineError(f"--resume with a different config ({', '.join(changed)}); "
-                                "only --steps may change when resuming")
+        refuse_resume(resume_conflicts(before, to_json(config), "steps"), BaselineError)
     torch.manual_seed(config.seed)
     model = Dreamer(dreamer_config)
     if latest.exists():

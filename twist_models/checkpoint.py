@@ -129,3 +129,12 @@ def restore(checkpoint: Checkpoint, module: nn.Module, config: Any,
     for name, optimiser in (optimisers or {}).items():
         if name in checkpoint.optimisers:
             optimiser.load_state_dict(checkpoint.optimisers[name])
+
+
+def move_optimiser_state(optimiser: torch.optim.Optimizer, device: torch.device | str) -> None:
+    """Move a (restored) optimiser's moment tensors to ``device``: ``Module.to`` leaves them on
+    the CPU. Adam's scalar step counters stay where they are, by design."""
+    for state in optimiser.state.values():
+        for key, value in state.items():
+            if torch.is_tensor(value) and value.dim() > 0:
+                state[key] = value.to(device)

@@ -62,7 +62,7 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import plot_learning_curves
-from twist_models.runlog import Board, append_csv
+from twist_models.runlog import Board, append_csv, prepare_output, refuse_resume, resume_conflicts
 from twist_models.teacher import FINAL_TEACHER, Teacher, load_teacher, save_teacher
 
 log = logging.getLogger(__name__)
@@ -287,14 +287,7 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
 def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
                   resume: bool) -> None:
     """Refuse, before anything is written, every output that would mix incompatible data."""
-    if out.exists() and not out.is_dir():
-        raise CollectError(f"output {str(out)!r} exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CollectError(f"cannot create output folder {str(out)!r}: {exc.strerror}") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise CollectError(f"output folder {str(out)!r} is not writable")
+    prepare_output(out, CollectError)
     if (out / "zarr.json").exists():
         raise CollectError(f"{str(out)!r} is a single shard; give the dataset folder above it")
     if any(out.glob("*.zarr")):
@@ -312,12 +305,7 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     stored = folder / "config.json"
     if resume and stored.exists():
         before = json.loads(stored.read_text())["collect"]
-        now = to_json(config)
-        changed = [f"{k} was {before.get(k)!r}, now {now[k]!r}" for k in now
-                   if k != "frames" and before.get(k) != now[k]]
-        if changed:
-            raise CollectError(f"--resume with a different config ({'; '.join(changed)}); only "
-                               "--steps may change when resuming")
+        refuse_resume(resume_conflicts(before, to_json(config), "frames"), CollectError)
 
 
 class _Run:

@@ -1,12 +1,36 @@
-"""Learning-curve plots (PNG) from the collector's ``eval.csv`` files."""
+"""PNG plots of runs: the collector's learning curves, the distiller's latent agreement and
+twist-eval's returns. Files only; matplotlib never opens a display."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
+
+
+@contextmanager
+def figure(out: str | os.PathLike[str], figsize: tuple[float, float], ncols: int = 1
+           ) -> Iterator[tuple[Any, Any]]:
+    """(figure, axes) to draw on; laid out and written to ``out`` on leaving the block, and
+    closed whatever happens."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    fig, axes = plt.subplots(1, ncols, figsize=figsize, dpi=120)
+    try:
+        yield fig, axes
+        fig.tight_layout()
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out)
+    finally:
+        plt.close(fig)
 
 
 def plot_learning_curves(runs: Mapping[str, str | os.PathLike[str]],
@@ -15,13 +39,7 @@ def plot_learning_curves(runs: Mapping[str, str | os.PathLike[str]],
     """Plot evaluation return against environment frames for each ``label: eval.csv`` (mean
     with a ±1 std band over the evaluation episodes) and dashed lines for ``references``
     (e.g. the paper's returns). Writes ``out`` (PNG) and returns its path."""
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only; never a display
-    from matplotlib import pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.6), dpi=120)
-    try:
+    with figure(out, (6, 3.6)) as (_, ax):
         for label, path in runs.items():
             table = pd.read_csv(path)
             if table.empty:
@@ -39,10 +57,34 @@ def plot_learning_curves(runs: Mapping[str, str | os.PathLike[str]],
         ax.grid(alpha=0.3)
         if runs:
             ax.legend(fontsize=7, loc="lower right")
-        fig.tight_layout()
-        out = Path(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out)
-    finally:
-        plt.close(fig)
-    return out
+    return Path(out)
+
+
+def plot_agreement(heldout_csv: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
+    """Held-out latent agreement (h-MSE and posterior KL, log scale) against updates."""
+    table = pd.read_csv(heldout_csv)
+    with figure(out, (8, 3.2), ncols=2) as (fig, axes):
+        for ax, columns, label in ((axes[0], ("h_mse", "imagined_h_mse"), "h MSE"),
+                                   (axes[1], ("post_kl", "prior_kl"), "KL(student || teacher)")):
+            for column in columns:
+                ax.plot(table["updates"], table[column].clip(lower=1e-6), marker="o",
+                        markersize=3, label=column)
+            ax.set_yscale("log")
+            ax.set_xlabel("student updates")
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        fig.suptitle("held-out latent agreement with the teacher", fontsize=9)
+    return Path(out)
+
+
+def plot_returns(table: pd.DataFrame, out: str | os.PathLike[str], title: str) -> Path:
+    """Box plot of episode returns per agent (an ``episodes.csv`` table)."""
+    names = list(dict.fromkeys(table["agent"]))
+    with figure(out, (1.6 + 1.4 * len(names), 3.4)) as (_, ax):
+        ax.boxplot([table.loc[table["agent"] == n, "return"] for n in names], showmeans=True)
+        ax.set_xticks(range(1, len(names) + 1), names, fontsize=8)
+        ax.set_ylabel("episode return")
+        ax.set_title(title, fontsize=9)
+        ax.grid(alpha=0.3, axis="y")
+    return Path(out)

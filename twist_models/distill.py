@@ -46,7 +46,12 @@ from twist_data.randomisation import derived_seed
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.sampler import SamplerConfig, WindowDataset, WindowSampler
 from twist_models.agent import Agent
-from twist_models.checkpoint import read_checkpoint, restore, save_checkpoint
+from twist_models.checkpoint import (
+    move_optimiser_state,
+    read_checkpoint,
+    restore,
+    save_checkpoint,
+)
 from twist_models.config import (
     PRESETS,
     OptimConfig,
@@ -57,8 +62,15 @@ from twist_models.config import (
     student_preset,
     to_json,
 )
+from twist_models.curves import plot_agreement
 from twist_models.losses import distillation_loss, imagined_distillation_loss
-from twist_models.runlog import Board, append_csv
+from twist_models.runlog import (
+    Board,
+    append_csv,
+    prepare_output,
+    refuse_resume,
+    resume_conflicts,
+)
 from twist_models.student import Student
 from twist_models.teacher import Teacher, find_teacher, load_teacher
 
@@ -194,18 +206,8 @@ class Distillation(nn.Module):
     def forward(self, batch: Mapping[str, torch.Tensor]
                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Total loss [] and every term [] for a batch of windows ({k: [B, L, ...]})."""
-        c, teacher, student = self.config, self.teacher, self.student
-        b, length = batch["action"].shape[:2]
-        stoch = student.config.rssm.stoch
-        device = batch["action"].device
-        post_draws = draws((b, length), stoch, device) if c.shared_draws else None
-        with torch.no_grad():
-            wm = teacher.world_model
-            t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), batch["action"],
-                                              batch["is_first"], uniform=post_draws)
-        s_post, s_prior = student.observe(batch["image"], batch["action"], batch["is_first"],
-                                          uniform=post_draws)
-        terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
+        c = self.config
+        s_post, t_post, terms = self.filter(batch)
         loss = (c.h_weight * terms["h"] + c.prior_weight * terms["prior_kl"]
                 + c.post_weight * terms["post_kl"])
         if c.imagined and c.imagined_weight > 0:
@@ -213,6 +215,24 @@ class Distillation(nn.Module):
             terms.update({f"imagined_{k}": v for k, v in imagined.items()})
             loss = loss + c.imagined_weight * (imagined["h"] + imagined["prior_kl"])
         return loss, terms
+
+    def filter(self, batch: Mapping[str, torch.Tensor]
+               ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """Both models' posteriors over the windows (student on images, teacher on states,
+        from the same draws when shared) and the Eq. 3 terms: (student posterior, teacher
+        posterior, terms)."""
+        action, is_first = batch["action"], batch["is_first"]
+        post_draws = None
+        if self.config.shared_draws:
+            post_draws = draws(action.shape[:2], self.student.config.rssm.stoch, action.device)
+        with torch.no_grad():
+            wm = self.teacher.world_model
+            t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
+                                              uniform=post_draws)
+        s_post, s_prior = self.student.observe(batch["image"], action, is_first,
+                                               uniform=post_draws)
+        terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
+        return s_post, t_post, terms
 
     def imagined_terms(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
                        ) -> dict[str, torch.Tensor]:
@@ -255,14 +275,9 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
     device = batch["action"].device
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(seed)
-        post_draws = draws(batch["action"].shape[:2], student.config.rssm.stoch, device)
-        wm = teacher.world_model
-        t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), batch["action"],
-                                          batch["is_first"], uniform=post_draws)
-        s_post, s_prior = student.observe(batch["image"], batch["action"], batch["is_first"],
-                                          uniform=post_draws)
-        terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
-        imagined = Distillation(student, teacher, config).imagined_terms(s_post, t_post)
+        objective = Distillation(student, teacher, dataclasses.replace(config, shared_draws=True))
+        s_post, t_post, terms = objective.filter(batch)
+        imagined = objective.imagined_terms(s_post, t_post)
     deter = student.config.rssm.deter
     return {"h_mse": float(terms["h"]) / deter, "post_kl": float(terms["post_kl"]),
             "prior_kl": float(terms["prior_kl"]), "imagined_h_mse": float(imagined["h"]) / deter}
@@ -349,28 +364,17 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
 
 
 def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resume: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise DistilError(f"output {str(out)!r} exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise DistilError(f"cannot create output folder {str(out)!r}: {exc.strerror}") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise DistilError(f"output folder {str(out)!r} is not writable")
+    prepare_output(out, DistilError)
     stored = out / "config.json"
     if stored.exists() and not resume:
         raise DistilError(f"{str(out)!r} already holds a distillation run; pass --resume to "
                           "continue it, or another --out")
     if resume and stored.exists():
         before = json.loads(stored.read_text())
-        now = {"distil": to_json(config), "student": to_json(student)}
-        changed = [f"{k} was {before['distil'].get(k)!r}, now {v!r}"
-                   for k, v in now["distil"].items() if k != "steps" and before["distil"].get(k) != v]
-        if before.get("student") != now["student"]:
-            changed.append("the student's sizes differ")
-        if changed:
-            raise DistilError(f"--resume with a different config ({'; '.join(changed)}); only "
-                              "--steps may change when resuming")
+        conflicts = resume_conflicts(before["distil"], to_json(config), "steps")
+        if before.get("student") != to_json(student):
+            conflicts.append("the student's sizes differ")
+        refuse_resume(conflicts, DistilError)
 
 
 def _rank_and_world() -> tuple[int, int]:
@@ -396,10 +400,11 @@ class _Run:
         self.teacher = teacher.to_device(device).eval().requires_grad_(False)
         self.writes = rank == 0
         latest = out / "latest.pt"
+        torch.manual_seed(config.seed)
+        self.student = Student(student_config)
+        self.optimiser = self._optimiser()
         if latest.exists():
             checkpoint = read_checkpoint(latest, kind="student")
-            self.student = Student(student_config)
-            self.optimiser = self._optimiser()
             restore(checkpoint, self.student, student_config, {"student": self.optimiser})
             self.updates = checkpoint.counters["updates"]
             self.seconds = float(checkpoint.extra.get("seconds", 0.0))
@@ -407,14 +412,11 @@ class _Run:
             torch.set_rng_state(torch.tensor(checkpoint.extra["torch_rng"], dtype=torch.uint8))
             log.info("resumed the student at update %d from %s", self.updates, latest)
         else:
-            torch.manual_seed(config.seed)
-            self.student = Student(student_config)
-            self.optimiser = self._optimiser()
             self.updates, self.seconds, self.heldout_first = 0, 0.0, {}
             # Ranks start from one student but draw their own latent samples and noise.
             torch.manual_seed(derived_seed(config.seed, 5, rank))
         self.student.to(device)
-        _move_optimiser(self.optimiser, device)
+        move_optimiser_state(self.optimiser, device)
         self.objective: nn.Module = Distillation(self.student, self.teacher, config)
         if world > 1:
             self.objective = nn.parallel.DistributedDataParallel(
@@ -552,13 +554,6 @@ class _Run:
         return path
 
 
-def _move_optimiser(optimiser: torch.optim.Optimizer, device: torch.device) -> None:
-    for state in optimiser.state.values():
-        for key, value in state.items():
-            if torch.is_tensor(value) and value.dim() > 0:
-                state[key] = value.to(device)
-
-
 def load_student(path: str | os.PathLike[str]) -> tuple[Student, dict[str, Any]]:
     """A student checkpoint's model and its run record (``extra``)."""
     checkpoint = read_checkpoint(path, kind="student")
@@ -566,36 +561,6 @@ def load_student(path: str | os.PathLike[str]) -> tuple[Student, dict[str, Any]]
     student = Student(config)
     restore(checkpoint, student, config)
     return student, checkpoint.extra
-
-
-def plot_agreement(heldout_csv: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
-    """Held-out latent agreement (h-MSE and posterior KL, log scale) against updates."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import pandas as pd
-    from matplotlib import pyplot as plt
-
-    table = pd.read_csv(heldout_csv)
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2), dpi=120)
-    try:
-        for ax, columns, label in ((axes[0], ("h_mse", "imagined_h_mse"), "h MSE"),
-                                   (axes[1], ("post_kl", "prior_kl"), "KL(student || teacher)")):
-            for column in columns:
-                ax.plot(table["updates"], table[column].clip(lower=1e-6), marker="o",
-                        markersize=3, label=column)
-            ax.set_yscale("log")
-            ax.set_xlabel("student updates")
-            ax.set_ylabel(label)
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=7)
-        fig.suptitle("held-out latent agreement with the teacher", fontsize=9)
-        fig.tight_layout()
-        out = Path(out)
-        fig.savefig(out)
-    finally:
-        plt.close(fig)
-    return out
 
 
 def initialise_distributed(device: str) -> str:

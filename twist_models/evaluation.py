@@ -35,8 +35,9 @@ from twist_models.agent import Agent, AgentState
 from twist_models.checkpoint import read_checkpoint
 from twist_models.collect import teacher_policy
 from twist_models.config import require_positive
+from twist_models.curves import plot_returns
 from twist_models.statistics import stratified_bootstrap
-from twist_models.teacher import load_teacher
+from twist_models.teacher import Teacher, teacher_from_checkpoint
 
 
 class EvalError(TwistError):
@@ -90,12 +91,11 @@ class StateAgent:
 
     uses_images = False
 
-    def __init__(self, path: str | os.PathLike[str], device: str = "cpu") -> None:
-        self.teacher, checkpoint = load_teacher(path)
-        self.teacher.to_device(device).eval()
-        self.action_dim = self.teacher.config.world_model.action_dim
+    def __init__(self, teacher: Teacher, task: str | None, device: str = "cpu") -> None:
+        self.teacher = teacher.to_device(device).eval()
+        self.action_dim = teacher.config.world_model.action_dim
         self.device = device
-        self.task = _collect_task(checkpoint.extra)
+        self.task = task
         self.reset()
 
     def reset(self) -> None:
@@ -110,8 +110,8 @@ class ImageAgent:
 
     uses_images = True
 
-    def __init__(self, path: str | os.PathLike[str], device: str = "cpu") -> None:
-        self.agent = Agent.load(path, device)
+    def __init__(self, agent: Agent) -> None:
+        self.agent = agent
         self.task = self.agent.info.get("task")
         self.image_size = self.agent.info.get("image_size")
         self._state: AgentState | None = None
@@ -139,17 +139,15 @@ class ScriptedAgent:
         return self.policy(step)
 
 
-def _collect_task(extra: dict) -> str | None:
-    return (extra.get("collect") or {}).get("task") if isinstance(extra, dict) else None
-
-
 def load_agent(path: str | os.PathLike[str], device: str = "cpu") -> StateAgent | ImageAgent:
     """A teacher checkpoint becomes the state oracle, an agent bundle the image agent."""
-    kind = read_checkpoint(path).kind
-    if kind == "teacher":
-        return StateAgent(path, device)
-    if kind == "agent":
-        return ImageAgent(path, device)
+    checkpoint = read_checkpoint(path)
+    if checkpoint.kind == "teacher":
+        task = (checkpoint.extra.get("collect") or {}).get("task")
+        return StateAgent(teacher_from_checkpoint(checkpoint, source=str(path)), task, device)
+    if checkpoint.kind == "agent":
+        return ImageAgent(Agent.from_checkpoint(checkpoint, device))
+    kind = checkpoint.kind
     raise EvalError(f"{str(path)!r} holds a {kind}; evaluate a teacher checkpoint or an "
                     "agent bundle (agent.pt from twist-distil)")
 
@@ -215,12 +213,13 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
 EPISODE_COLUMNS = ("agent", "kind", "seed", "episode", "episode_seed", "return", "steps")
 
 
-def run_evaluation(agents: Mapping[str, str | os.PathLike[str]], config: EvalConfig,
+def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | StateAgent | ImageAgent],
+                   config: EvalConfig,
                    seeds: Sequence[int], out: str | os.PathLike[str], videos: int = 0,
                    device: str = "cpu",
                    on_episode: Callable[[str, EpisodeResult], None] | None = None
                    ) -> dict[str, Any]:
-    """Evaluate every ``name: checkpoint`` on the same episodes for each seed and write
+    """Evaluate every ``name: checkpoint`` (or loaded agent) on the same episodes for each seed and write
     ``episodes.csv``, ``summary.json``, ``returns.png`` and ``videos`` mp4s per agent to
     ``out``. Returns the summary: per agent the mean and std over seeds of the per-seed mean
     return, and, when an oracle (a teacher checkpoint) is among the agents, every agent's
@@ -230,9 +229,10 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str]], config: EvalCon
     if not seeds:
         raise EvalError("no seeds to evaluate")
     out = Path(out)
-    loaded = {name: load_agent(path, device) for name, path in agents.items()}
+    loaded = {name: a if isinstance(a, StateAgent | ImageAgent) else load_agent(a, device)
+               for name, a in agents.items()}
     for name, agent in loaded.items():
-        check_compatible(agent, config, f"agent {name!r} ({agents[name]})")
+        check_compatible(agent, config, f"agent {name!r}")
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, agent in loaded.items():
@@ -283,26 +283,3 @@ def summarise(table: pd.DataFrame, config: EvalConfig) -> dict[str, Any]:
         agents[name] = entry
     return {"task": config.task, "dr": config.dr, "backgrounds": config.backgrounds,
             "episodes_per_seed": config.episodes, "oracle_mean": oracle_mean, "agents": agents}
-
-
-def plot_returns(table: pd.DataFrame, out: str | os.PathLike[str], title: str) -> Path:
-    """Box plot of episode returns per agent."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib import pyplot as plt
-
-    names = list(dict.fromkeys(table["agent"]))
-    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(names), 3.4), dpi=120)
-    try:
-        ax.boxplot([table.loc[table["agent"] == n, "return"] for n in names], showmeans=True)
-        ax.set_xticks(range(1, len(names) + 1), names, fontsize=8)
-        ax.set_ylabel("episode return")
-        ax.set_title(title, fontsize=9)
-        ax.grid(alpha=0.3, axis="y")
-        fig.tight_layout()
-        out = Path(out)
-        fig.savefig(out)
-    finally:
-        plt.close(fig)
-    return out

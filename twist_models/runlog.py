@@ -1,10 +1,15 @@
-"""Run records shared by the collector and the distiller: CSV rows and TensorBoard scalars."""
+"""What the collector, the distiller and the baselines share about their run folders: CSV rows,
+TensorBoard scalars, output-folder checks and resume-config checks."""
 
 from __future__ import annotations
 
 import csv
+import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+
+from twist_data.errors import TwistError
 
 
 def append_csv(path: Path, row: dict[str, Any], columns: tuple[str, ...]) -> None:
@@ -33,3 +38,31 @@ class Board:
         if self._writer is not None:
             self._writer.add_scalar(tag, value, step)
             self._writer.flush()
+
+
+def prepare_output(out: Path, error: type[TwistError]) -> None:
+    """Create the output folder ``out`` if needed; refuse, with ``error``, a file in its place,
+    a folder that cannot be created, or one that is not writable."""
+    if out.exists() and not out.is_dir():
+        raise error(f"output {str(out)!r} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise error(f"cannot create output folder {str(out)!r}: {exc.strerror}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise error(f"output folder {str(out)!r} is not writable")
+
+
+def resume_conflicts(before: Mapping[str, Any], now: Mapping[str, Any], mutable: str
+                     ) -> list[str]:
+    """``name was X, now Y`` for every config field but ``mutable`` that a resumed run would
+    change."""
+    return [f"{k} was {before.get(k)!r}, now {v!r}" for k, v in now.items()
+            if k != mutable and before.get(k) != v]
+
+
+def refuse_resume(conflicts: list[str], error: type[TwistError]) -> None:
+    """Raise ``error`` naming every conflict, if there is any."""
+    if conflicts:
+        raise error(f"--resume with a different config ({'; '.join(conflicts)}); only --steps "
+                    "may change when resuming")

@@ -15,7 +15,13 @@ from torch import nn
 
 from twist_data.errors import CheckpointError, CheckpointMismatchError
 from twist_models.actor_critic import ActorCritic
-from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
+from twist_models.checkpoint import (
+    Checkpoint,
+    move_optimiser_state,
+    read_checkpoint,
+    restore,
+    save_checkpoint,
+)
 from twist_models.config import DreamerConfig, TeacherConfig, from_json
 from twist_models.rssm import State
 from twist_models.world_model import WorldModel
@@ -40,15 +46,10 @@ class Dreamer(nn.Module):
         self.register_buffer("step", torch.zeros((), dtype=torch.int64))
 
     def to_device(self, device: torch.device | str) -> Dreamer:
-        """Move weights and optimiser moments to ``device``. (``Module.to`` alone leaves the
-        moments of a restored checkpoint on the CPU; Adam's scalar step counters stay there
-        by design.)"""
+        """Move weights and optimiser moments to ``device``."""
         self.to(device)
         for optimiser in self.optimisers().values():
-            for state in optimiser.state.values():
-                for key, value in state.items():
-                    if torch.is_tensor(value) and value.dim() > 0:
-                        state[key] = value.to(device)
+            move_optimiser_state(optimiser, device)
         return self
 
     def optimisers(self) -> dict[str, torch.optim.Optimizer]:
@@ -116,16 +117,22 @@ def load_teacher(path: str | os.PathLike[str], state_dim: int | None = None,
     """Rebuild a teacher from its checkpoint; ``state_dim``/``action_dim`` (e.g. a dataset's)
     must match the checkpoint's, else the error names both values."""
     checkpoint = read_checkpoint(path, kind="teacher")
+    return teacher_from_checkpoint(checkpoint, state_dim, action_dim, str(path)), checkpoint
+
+
+def teacher_from_checkpoint(checkpoint: Checkpoint, state_dim: int | None = None,
+                            action_dim: int | None = None, source: str = "") -> Teacher:
+    """:func:`load_teacher` for a checkpoint already read (``source`` names it in errors)."""
     config = from_json(TeacherConfig, checkpoint.config)
     wm = config.world_model
     for name, wanted in (("state_dim", state_dim), ("action_dim", action_dim)):
         have = getattr(wm, name)
         if wanted is not None and wanted != have:
-            raise CheckpointMismatchError(f"teacher checkpoint {str(path)!r} has {name} {have}, "
+            raise CheckpointMismatchError(f"teacher checkpoint {source!r} has {name} {have}, "
                                           f"but the data has {name} {wanted}")
     teacher = Teacher(config)
     restore(checkpoint, teacher, config, teacher.optimisers())
-    return teacher, checkpoint
+    return teacher
 
 
 def find_teacher(out: str | os.PathLike[str]) -> Path:
