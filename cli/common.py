@@ -12,9 +12,10 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 
-from twist_data.errors import TwistError
+from twist_data.errors import ConfigError, TwistError
 
 P = TypeVar("P")
+T = TypeVar("T")
 
 out = Console()
 err = Console(stderr=True)
@@ -52,3 +53,11 @@ def progress_bar(quiet: bool, description: str,
             bar.update(task, completed=done, total=total, stats=stats)
 
         yield report
+
+
+def parse_list(text: str, kind: Callable[[str], T], option: str) -> list[T]:
+    """A comma-separated option value as a list; a bad element is one error naming ``option``."""
+    try:
+        return [kind(s.strip()) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise ConfigError(f"{option} must be a comma-separated list, got {text!r}") from None

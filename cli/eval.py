@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twist_cli.common import out, run_app
+from twist_cli.common import out, parse_list, run_app
 from twist_data.errors import ConfigError
 from twist_models.evaluation import EvalConfig, ImageAgent, StateAgent, load_agent, run_evaluation
 
@@ -31,13 +31,6 @@ def parse_agents(specs: list[str], device: str) -> dict[str, StateAgent | ImageA
             raise ConfigError(f"two agents are named {name!r}; use NAME=PATH")
         agents[name] = agent
     return agents
-
-
-def parse_seeds(seeds: str) -> list[int]:
-    try:
-        return [int(s) for s in seeds.split(",") if s.strip()]
-    except ValueError:
-        raise ConfigError(f"--seeds must be comma-separated integers, got {seeds!r}") from None
 
 
 @app.command()
@@ -64,8 +57,9 @@ def main(
             raise ConfigError("no agent names its task; pass --task")
     config = EvalConfig(task=task, dr=dr, episodes=episodes, max_steps=max_steps,
                         backgrounds=None if backgrounds is None else str(backgrounds))
-    summary = run_evaluation(agents, config, parse_seeds(seeds), out_dir, video, device)
-    table = Table(title=f"{task}, DR {dr}, {episodes} episodes x {len(parse_seeds(seeds))} seeds")
+    seed_list = parse_list(seeds, int, "--seeds")
+    summary = run_evaluation(agents, config, seed_list, out_dir, video, device)
+    table = Table(title=f"{task}, DR {dr}, {episodes} episodes x {len(seed_list)} seeds")
     for column in ("agent", "kind", "mean ± std (seeds)", "normalised IQM [95% CI]"):
         table.add_column(column)
     for name, s in summary["agents"].items():

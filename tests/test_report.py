@@ -1,0 +1,125 @@
+"""The reproduction report: statistics of Table I against hand-computed values, the whole
+pipeline at the tiny scale (every agent trained as its column says), resumption without
+repeated work, and the CLI's refusals."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from twist_data.errors import ConfigError, UnknownTaskError
+from twist_data.reader import open_dataset
+from twist_models.report import (
+    AGENTS,
+    RESULT_COLUMNS,
+    ReportConfig,
+    ReportError,
+    aggregate,
+    build_report,
+    markdown_table,
+    run_reproduction,
+)
+
+
+def _results(scores: dict[tuple[str, str], list[float]]) -> pd.DataFrame:
+    rows = [(task, seed, agent, score, 10) for (task, agent), values in scores.items()
+            for seed, score in enumerate(values)]
+    return pd.DataFrame(rows, columns=RESULT_COLUMNS)
+
+
+def test_table_statistics_match_hand_computed_values() -> None:
+    results = _results({
+        ("cartpole-balance", "oracle"): [900.0, 1000.0, 1100.0],  # mean 1000
+        ("cartpole-balance", "twist"): [800.0, 900.0, 1000.0],
+        ("cup-catch", "oracle"): [500.0, 500.0, 500.0],
+        ("cup-catch", "twist"): [100.0, 400.0, 500.0],
+    })
+    summary = aggregate(results)
+    twist = summary["per_task"]["cartpole-balance"]["twist"]
+    assert twist["mean"] == pytest.approx(900.0)
+    assert twist["std"] == pytest.approx(np.sqrt(20000 / 3))  # population std over seeds
+    # Normalised run scores: 0.8, 0.9, 1.0 (cartpole) and 0.2, 0.8, 1.0 (cup); the IQM of six
+    # trims one from each end: mean(0.8, 0.8, 0.9, 1.0) = 0.875.
+    iqm = summary["normalised_iqm"]["twist"]
+    assert iqm["iqm"] == pytest.approx(0.875)
+    assert iqm["ci95"][0] <= 0.875 <= iqm["ci95"][1]
+    assert iqm["runs"] == 6 and iqm["tasks"] == 2
+    # The oracle normalised by its own task mean: 0.9, 1.0, 1.1, 1, 1, 1 -> IQM 1.
+    assert summary["normalised_iqm"]["oracle"]["iqm"] == pytest.approx(1.0)
+
+    table = markdown_table(summary)
+    assert "| cartpole-balance (ours) | 1000.0 ± 81.6 | 900.0 ± 81.6 |" in table
+    assert "| cartpole-balance (paper, `paper` scale) | 992.9 | 954.5 |" in table
+    assert "| TWIST | 0.875 [" in table
+
+
+def test_aggregate_refuses_a_task_without_oracle() -> None:
+    with pytest.raises(ReportError, match="'cup-catch' has no oracle"):
+        aggregate(_results({("cup-catch", "twist"): [1.0]}))
+    with pytest.raises(ReportError, match="no evaluation results"):
+        aggregate(pd.DataFrame(columns=RESULT_COLUMNS))
+
+
+def test_config_names_the_bad_value() -> None:
+    with pytest.raises(UnknownTaskError, match="'walker-fly'"):
+        ReportConfig(tasks=("walker-fly",))
+    with pytest.raises(ConfigError, match="unknown agent 'sac'"):
+        ReportConfig(agents=("twist", "sac"))
+    with pytest.raises(ConfigError, match="eval_episodes must be > 0, got 0"):
+        ReportConfig(eval_episodes=0)
+    assert ReportConfig(agents=("twist",)).agents == ("oracle", "twist")
+
+
+def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_path: Path) -> None:
+    config = ReportConfig(tasks=("cartpole-balance",), seeds=(3,), preset="tiny",
+                          eval_episodes=1, eval_max_steps=10)
+    summary = run_reproduction(tmp_path, config)
+    root = tmp_path / "cartpole-balance" / "seed-3"
+    assert set(summary["per_task"]["cartpole-balance"]) == set(AGENTS)
+
+    # Each column is the run its heading names.
+    def stored(name: str) -> dict:
+        return json.loads((root / name / "config.json").read_text())
+
+    assert stored("twist")["distil"]["imagined"] and stored("twist")["distil"]["seed"] == 3
+    assert not stored("twist-no-imagined")["distil"]["imagined"]
+    assert stored("twist-no-noise")["distil"]["action_noise"] == 0.0
+    student_steps = stored("twist")["distil"]["steps"]
+    for name, kind in (("dreamer-dr", "dreamer"), ("dreamer-no-dr", "dreamer"),
+                       ("state-recon", "state-recon")):
+        baseline = stored(name)["baseline"]
+        assert (baseline["kind"], baseline["steps"]) == (kind, student_steps)
+    clean = open_dataset(root / "dataset-clean")
+    source = open_dataset(root / "dataset")
+    assert clean.spec.views == 1 and clean.n_episodes == source.n_episodes
+    np.testing.assert_array_equal(clean.episode(0).action, source.episode(0).action)
+
+    # The table's figures are the evaluation's.
+    episodes = pd.read_csv(root / "eval" / "episodes.csv")
+    oracle = episodes.loc[episodes["agent"] == "oracle", "return"].mean()
+    assert summary["per_task"]["cartpole-balance"]["oracle"]["mean"] == pytest.approx(oracle)
+    assert (tmp_path / "iqm.png").stat().st_size > 0
+    assert "TWIST w/o action noise" in (tmp_path / "report.md").read_text()
+
+    # A second run finds every stage done and only re-aggregates.
+    stamps = {p: p.stat().st_mtime_ns for p in root.rglob("*.pt")}
+    stamps[root / "eval" / "episodes.csv"] = (root / "eval" / "episodes.csv").stat().st_mtime_ns
+    assert run_reproduction(tmp_path, config) == summary
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
+    assert build_report(tmp_path, config) == summary
+
+
+def test_cli_refuses_bad_lists_without_traceback(tmp_path: Path) -> None:
+    for args, message in ((["--seeds", "0,x"], "--seeds must be a comma-separated list"),
+                          (["--tasks", "walker-fly"], "walker-fly"),
+                          (["--table-only"], "no evaluation results")):
+        result = subprocess.run([sys.executable, "-m", "twist_cli.report", "--out",
+                                 str(tmp_path), *args], capture_output=True, text=True)
+        assert result.returncode == 2, result.stderr
+        assert message in result.stderr and "Traceback" not in result.stderr
