@@ -34,6 +34,7 @@ from twist_data.rollout import random_policy, record_episode, simulated_spec
 from twist_data.tasks import TaskEnv
 from twist_data.writer import ShardWriter
 from twist_models.collect import collect_preset, teacher_policy
+from twist_models.networks import single_threaded
 from twist_models.teacher import Teacher
 
 TARGET = 250.0
@@ -55,8 +56,9 @@ def collection_slice(task: str, episodes: int, policy_name: str, preset: str,
         with ShardWriter.create(folder, "bench", simulated_spec(env, renderer)) as writer:
             steps, start = 0, time.perf_counter()
             for i in range(episodes):
-                episode, info = record_episode(env, renderer, sampler, policy, seed=i,
-                                               timings=timings)
+                with single_threaded():  # as the collector acts
+                    episode, info = record_episode(env, renderer, sampler, policy, seed=i,
+                                                   timings=timings)
                 tick = time.perf_counter()
                 writer.append(episode, info)
                 timings["write"] = timings.get("write", 0.0) + time.perf_counter() - tick

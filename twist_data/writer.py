@@ -39,7 +39,13 @@ from twist_data.schema import (
     episode_problems,
     step_arrays,
 )
-from twist_data.storage import StorageLayout, create_episode_array, create_step_array
+from twist_data.storage import (
+    FrameWriter,
+    StorageLayout,
+    create_episode_array,
+    create_step_array,
+    frame_encoder,
+)
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +74,10 @@ class ShardWriter:
         self.layout = StorageLayout(**block["layout"])
         self._block = block
         self._step_arrays = {a.path: group[a.path] for a in step_arrays(self.spec)}
+        images = self._step_arrays["data/image"]
+        encoder = frame_encoder(images)
+        self._frames = None if encoder is None else FrameWriter(
+            images, path / "data" / "image", encoder, int(images.shards[0]))
         self._episode_arrays = {f"meta/{c}": group[f"meta/{c}"] for c in EPISODE_COLUMNS}
         self._episode_arrays.update(
             {f"meta/dr/{p.name}": group[f"meta/dr/{p.name}"] for p in self.spec.episode_dr_params}
@@ -174,7 +184,10 @@ class ShardWriter:
         arrays = episode.arrays()
         for key, arr in self._step_arrays.items():
             arr.resize((stop, *arr.shape[1:]))
-            arr[start:stop] = arrays[key[len("data/"):]]
+            if key == "data/image" and self._frames is not None:
+                self._frames.append(start, arrays["image"])
+            else:
+                arr[start:stop] = arrays[key[len("data/"):]]
         e = self.n_episodes
         row: dict[str, Any] = {
             "meta/episode_ends": stop,

@@ -75,7 +75,7 @@ class Agent(nn.Module):
         if state is None:
             state = AgentState(rssm.initial(n, self.device),
                                torch.zeros(n, self.config.student.action_dim, device=self.device))
-        latent, _ = rssm.obs_step(state.latent, state.action, self.student.encoder(image), first)
+        latent = rssm.post_step(state.latent, state.action, self.student.encoder(image), first)
         dist = self.actor(rssm.feature(latent))
         action = (dist.rsample() if explore else dist.mode).clamp(-1.0, 1.0)
         out = action.cpu().numpy()

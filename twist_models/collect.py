@@ -62,6 +62,7 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import plot_learning_curves
+from twist_models.networks import single_threaded
 from twist_models.runlog import Board, append_csv, prepare_output, refuse_resume, resume_conflicts
 from twist_models.teacher import FINAL_TEACHER, Teacher, load_teacher, save_teacher
 
@@ -403,9 +404,11 @@ class _Run:
         else:
             policy = teacher_policy(self.teacher, self.env.action_dim, self.device)
             name, step = "teacher", int(self.teacher.step)
-        episode, info = record_episode(self.env, self.renderer, self.dr_sampler, policy,
-                                       seed=episode_seed, policy_name=name, teacher_step=step,
-                                       env_step=frames, timings=self.seconds)
+        with single_threaded():
+            episode, info = record_episode(self.env, self.renderer, self.dr_sampler, policy,
+                                           seed=episode_seed, policy_name=name,
+                                           teacher_step=step, env_step=frames,
+                                           timings=self.seconds)
         tick = time.perf_counter()
         try:
             self.writer.append(episode, info)
@@ -447,18 +450,7 @@ class _Run:
     def _evaluate(self) -> None:
         c = self.config
         tick = time.perf_counter()
-        returns = []
-        for j in range(c.eval_episodes):
-            policy = (teacher_policy(self.teacher, self.env.action_dim, self.device,
-                                     explore=False) if self.frames >= c.prefill_frames
-                      else random_policy(self.env.action_dim, j))
-            step = self.eval_env.reset(seed=derived_seed(self.seed, 1 << 30, j),
-                                       dynamics=Dynamics())
-            total = 0.0
-            while not step.is_last:
-                step = self.eval_env.step(policy(step))
-                total += step.reward
-            returns.append(total)
+        returns = [self._evaluation_episode(j) for j in range(c.eval_episodes)]
         self.eval_returns.append(float(np.mean(returns)))
         self.evaluated_at = self.frames
         while self.next_eval <= self.frames:
@@ -473,6 +465,20 @@ class _Run:
                              f"{c.task}, {c.model} teacher on state, mode action")
         self.seconds["eval"] += time.perf_counter() - tick
         log.info("eval at %d frames: return %.1f", self.frames, self.eval_returns[-1])
+
+    def _evaluation_episode(self, index: int) -> float:
+        """Return of one episode of the teacher's mode action on states, nominal dynamics."""
+        policy = (teacher_policy(self.teacher, self.env.action_dim, self.device, explore=False)
+                  if self.frames >= self.config.prefill_frames
+                  else random_policy(self.env.action_dim, index))
+        step = self.eval_env.reset(seed=derived_seed(self.seed, 1 << 30, index),
+                                   dynamics=Dynamics())
+        total = 0.0
+        with single_threaded():
+            while not step.is_last:
+                step = self.eval_env.step(policy(step))
+                total += step.reward
+        return total
 
     def _checkpoint(self, final: bool = False) -> Path:
         tick = time.perf_counter()

@@ -36,6 +36,7 @@ from twist_models.checkpoint import read_checkpoint
 from twist_models.collect import teacher_policy
 from twist_models.config import require_positive
 from twist_models.curves import plot_returns
+from twist_models.networks import single_threaded
 from twist_models.statistics import stratified_bootstrap
 from twist_models.teacher import Teacher, teacher_from_checkpoint
 
@@ -184,7 +185,8 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
     env = TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
     render = agent.uses_images or record is not None
     results = []
-    with DRRenderer(config.task, config.dr_config(), config.image_size, views=1) as renderer:
+    with (DRRenderer(config.task, config.dr_config(), config.image_size, views=1) as renderer,
+          single_threaded()):
         sampler = renderer.sampler(seed)
         for i in range(config.episodes):
             episode_seed = derived_seed(seed, 1 << 20, i)

@@ -91,7 +91,7 @@ class RSSM(nn.Module):
     def obs_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
                  is_first: torch.Tensor | None = None) -> tuple[State, State]:
         """(posterior, prior) at a step with observation embedding ``embed`` [..., E]."""
-        post = self._post_step(prev, action, embed, is_first)
+        post = self.post_step(prev, action, embed, is_first)
         return post, self._prior(post["deter"])
 
     def _deter(self, prev: State, action: torch.Tensor) -> torch.Tensor:
@@ -104,8 +104,10 @@ class RSSM(nn.Module):
         stoch = sample_one_hot(logits, uniform) if sample else _mode(logits)
         return {"deter": deter, "logits": logits, "stoch": stoch}
 
-    def _post_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
-                   is_first: torch.Tensor | None, uniform: torch.Tensor | None = None) -> State:
+    def post_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
+                  is_first: torch.Tensor | None = None,
+                  uniform: torch.Tensor | None = None) -> State:
+        """The posterior state alone: what acting needs (the prior head is not run)."""
         if is_first is not None:
             keep = (~is_first.bool()).to(action.dtype)
             prev = {k: v * keep.reshape(*keep.shape, *([1] * (v.dim() - keep.dim())))
@@ -128,7 +130,7 @@ class RSSM(nn.Module):
         posts = []
         for i in range(t):
             draws = None if uniform is None else uniform[:, i]
-            state = self._post_step(state, action[:, i], embed[:, i], is_first[:, i], draws)
+            state = self.post_step(state, action[:, i], embed[:, i], is_first[:, i], draws)
             posts.append(state)
         post = stack_states(posts, 1)
         # Nothing in the recurrence reads the prior, so its head runs once on all [B, T]

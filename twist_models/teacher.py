@@ -88,7 +88,7 @@ class Teacher(Dreamer):
         rssm = self.world_model.rssm
         if latent is None:
             latent = rssm.initial(state.shape[0], state.device)
-        latent, _ = rssm.obs_step(latent, prev_action, self.world_model.embed(state), is_first)
+        latent = rssm.post_step(latent, prev_action, self.world_model.embed(state), is_first)
         dist = self.actor_critic.actor(rssm.feature(latent))
         if explore:
             action = dist.rsample()
