@@ -170,7 +170,7 @@ def test_short_run_improves_agreement_and_writes_an_agent(distil_inputs, tmp_pat
     with torch.no_grad():
         for i, frame in enumerate(frames):
             embed = student.encoder(torch.as_tensor(frame)[None])
-            latent, _ = rssm.obs_step(latent, previous, embed, torch.tensor([i == 0]))
+            latent = rssm.post_step(latent, previous, embed, torch.tensor([i == 0]))
             previous = actor(rssm.feature(latent)).mode.clamp(-1, 1)
             np.testing.assert_allclose(actions[i], previous[0].numpy(), atol=1e-6)
 
