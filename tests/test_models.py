@@ -12,7 +12,7 @@ import torch
 from twist_data.errors import CheckpointError, CheckpointMismatchError
 from twist_models.config import CNNConfig, WorldModelConfig, teacher_preset
 from twist_models.losses import categorical_kl, kl_balance_loss, lambda_returns
-from twist_models.networks import ImageDecoder, ImageEncoder
+from twist_models.networks import ImageDecoder, ImageEncoder, single_threaded
 from twist_models.rssm import sample_one_hot
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 from twist_models.world_model import WorldModel
@@ -47,6 +47,30 @@ def test_rssm_shapes_with_extra_leading_dims() -> None:
     assert torch.allclose(stoch.max(-1).values, torch.ones(4, 3, c.stoch))
     loss, states, _ = wm.loss(_batch())
     assert loss.shape == () and states["deter"].shape == (3, 6, c.deter)
+
+
+def test_acting_step_is_the_filters_posterior_on_one_thread() -> None:
+    wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
+    rssm = wm.rssm
+    embed = torch.randn(2, 3, wm.encoder.out_dim)
+    action = torch.rand(2, 3, 2)
+    first = torch.tensor([[True, False, False]] * 2)
+    uniform = torch.rand(2, 3, rssm.config.stoch, 1)
+    with torch.no_grad():
+        post, _ = rssm.observe(embed, action, first, uniform=uniform)
+        latent = rssm.initial(2)
+        before = torch.get_num_threads()
+        with single_threaded():
+            assert torch.get_num_threads() == 1
+            for t in range(3):
+                latent = rssm.post_step(latent, action[:, t], embed[:, t], first[:, t],
+                                        uniform[:, t])
+                for key in ("deter", "logits", "stoch"):
+                    torch.testing.assert_close(latent[key], post[key][:, t])
+        assert torch.get_num_threads() == before
+    with pytest.raises(RuntimeError), single_threaded():
+        raise RuntimeError("the thread count is restored on errors too")
+    assert torch.get_num_threads() == before
 
 
 def test_straight_through_gradients_flow() -> None:
