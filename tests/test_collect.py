@@ -169,6 +169,20 @@ def test_behaviour_overrides_reach_the_teacher_config() -> None:
     assert quick.updates_due(quick.prefill_frames + 10 * quick.action_repeat * 5) == 110
 
 
+def test_world_model_warms_up_alone_before_behaviour_learning(tmp_path: Path) -> None:
+    base = collect_preset("tiny", frames=300)
+    warmup = base.updates_due(200)  # the actor-critic joins after the second episode's updates
+    summary = collect(tmp_path, dataclasses.replace(base, behaviour_from=warmup))
+    teacher, _ = load_teacher(find_teacher(tmp_path))
+    assert summary.updates == base.updates_due(summary.frames) > warmup > 0
+    assert int(teacher.actor_critic.updates) == summary.updates - warmup
+    metrics = pd.read_csv(tmp_path / "collect" / "collect-000" / "metrics.csv")
+    trained = metrics[metrics["updates"] > 0]
+    # Rows of warm-up updates have world-model losses but no actor-critic losses.
+    assert trained["model_loss"].notna().all()
+    assert list(trained["actor_loss"].notna()) == list(trained["updates"] > warmup)
+
+
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:
     done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--task", "nope"],
                           capture_output=True, text=True)

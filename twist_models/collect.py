@@ -123,6 +123,10 @@ class CollectConfig:
     """Episodes per evaluation."""
     snapshot_every: int = 100_000
     """Frames between kept teacher checkpoints (``latest.pt`` is written every episode)."""
+    behaviour_from: int = 0
+    """Teacher updates that train the world model alone before the actor-critic joins in: its
+    imagination is only worth learning from once the model predicts something (and such
+    updates cost a third of a full one)."""
     imag_starts: int | None = None
     """Override of the model preset's imagination starts (0 = all); None keeps the preset's."""
     explore_noise: float = 0.0
@@ -144,7 +148,8 @@ class CollectConfig:
             raise ConfigError(f"unknown DR preset {self.dr!r}; valid: {', '.join(DR_PRESETS)}")
         require_positive(self, "frames", "views", "image_size", "action_repeat", "train_every",
                          "batch_size", "batch_length", "eval_every", "snapshot_every")
-        require_non_negative(self, "prefill_frames", "pretrain_updates", "eval_episodes")
+        require_non_negative(self, "prefill_frames", "pretrain_updates", "eval_episodes",
+                             "behaviour_from")
         if self.max_steps is not None and self.max_steps < self.batch_length:
             raise ConfigError(f"max_steps {self.max_steps} is shorter than one replay window "
                               f"(batch_length {self.batch_length})")
@@ -442,7 +447,8 @@ class _Run:
         while int(self.teacher.step) < due:
             batch = {k: torch.as_tensor(v, device=self.device)
                      for k, v in self.replay.batch().items() if k in REPLAY_KEYS}
-            for k, v in self.teacher.train_step(batch).items():
+            behaviour = int(self.teacher.step) >= c.behaviour_from
+            for k, v in self.teacher.train_step(batch, behaviour).items():
                 metrics.setdefault(k, []).append(v)
         self.train_metrics = {k: float(np.mean(v)) for k, v in metrics.items()}
         self.seconds["learn"] += time.perf_counter() - tick

@@ -56,18 +56,20 @@ class Dreamer(nn.Module):
         return {"model": self.model_opt, "actor": self.actor_critic.actor_opt,
                 "critic": self.actor_critic.critic_opt}
 
-    def train_step(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+    def train_step(self, batch: dict[str, torch.Tensor], behaviour: bool = True
+                   ) -> dict[str, float]:
         """Update the world model on ``batch`` ({k: [B, T, ...]}: state or image, action,
-        reward, is_first, ...), then the actor-critic from imagination started at every posterior
-        state. Returns scalar metrics."""
+        reward, is_first, ...), then, with ``behaviour``, the actor-critic from imagination
+        started at the posterior states. Returns scalar metrics."""
         loss, post, metrics = self.world_model.loss(batch)
         self.model_opt.zero_grad(set_to_none=True)
         loss.backward()
         metrics["model_grad_norm"] = nn.utils.clip_grad_norm_(self.world_model.parameters(),
                                                               self.config.optim.grad_clip)
         self.model_opt.step()
-        start = {k: v.detach().flatten(0, 1) for k, v in post.items()}
-        metrics.update(self.actor_critic.train_step(self.world_model, start))
+        if behaviour:
+            start = {k: v.detach().flatten(0, 1) for k, v in post.items()}
+            metrics.update(self.actor_critic.train_step(self.world_model, start))
         self.step += 1
         return {k: float(v) for k, v in metrics.items()}
 
