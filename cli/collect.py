@@ -10,9 +10,16 @@ from typing import Annotated
 
 import typer
 
-from twist_cli.common import out, progress_bar, run_app
+from twist_cli.common import out, parse_settings, progress_bar, run_app
 from twist_data.tasks import DEFAULT_TASK
-from twist_models.collect import COLLECT_PRESETS, collect, collect_preset, run_dir, stored_config
+from twist_models.collect import (
+    COLLECT_PRESETS,
+    CollectConfig,
+    collect,
+    collect_preset,
+    run_dir,
+    stored_config,
+)
 from twist_models.collect import Progress as CollectProgress
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
@@ -45,6 +52,9 @@ def main(
     resume: Annotated[bool, typer.Option(
         "--resume", help="Continue an interrupted run of this shard.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+    settings: Annotated[list[str] | None, typer.Option(
+        "--set", help="Override any CollectConfig field, KEY=VALUE (repeatable), e.g. "
+                      "--set model_lr=1e-3 --set behaviour_from=2000.")] = None,
 ) -> None:
     """Train a DreamerV2 teacher on privileged state while recording K randomised renders of
     every step it takes into a matching dataset, crash-safe and resumable."""
@@ -53,6 +63,7 @@ def main(
                  "dr": dr, "backgrounds": None if backgrounds is None else str(backgrounds),
                  "seed": seed}
     given = {k: v for k, v in overrides.items() if v is not None}
+    given.update(parse_settings(settings or [], CollectConfig))
     if resume and (run_dir(out_dir, name) / "config.json").exists():
         # A resumed run keeps its stored config; flags given again must agree with it
         # (collect() refuses any difference but --steps).

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
@@ -61,3 +63,20 @@ def parse_list(text: str, kind: Callable[[str], T], option: str) -> list[T]:
         return [kind(s.strip()) for s in text.split(",") if s.strip()]
     except ValueError:
         raise ConfigError(f"{option} must be a comma-separated list, got {text!r}") from None
+
+
+def parse_settings(pairs: list[str], config_type: type) -> dict[str, Any]:
+    """``--set KEY=VALUE`` options as overrides of ``config_type``'s fields; each VALUE is read
+    as JSON (numbers, true/false, null) or else taken as a string."""
+    fields = {f.name for f in dataclasses.fields(config_type)}
+    settings: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or key not in fields:
+            raise ConfigError(f"--set takes KEY=VALUE with KEY one of {', '.join(sorted(fields))}; "
+                              f"got {pair!r}")
+        try:
+            settings[key] = json.loads(text)
+        except json.JSONDecodeError:
+            settings[key] = text
+    return settings

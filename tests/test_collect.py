@@ -172,10 +172,14 @@ def test_behaviour_overrides_reach_the_teacher_config() -> None:
 def test_world_model_warms_up_alone_before_behaviour_learning(tmp_path: Path) -> None:
     base = collect_preset("tiny", frames=300)
     warmup = base.updates_due(200)  # the actor-critic joins after the second episode's updates
-    summary = collect(tmp_path, dataclasses.replace(base, behaviour_from=warmup))
-    teacher, _ = load_teacher(find_teacher(tmp_path))
-    assert summary.updates == base.updates_due(summary.frames) > warmup > 0
-    assert int(teacher.actor_critic.updates) == summary.updates - warmup
+    done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--preset", "tiny", "--steps", "300",
+                           "--set", f"behaviour_from={warmup}", "--quiet"],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    teacher, checkpoint = load_teacher(find_teacher(tmp_path))
+    updates = int(teacher.step)
+    assert updates == base.updates_due(checkpoint.counters["frames"]) > warmup > 0
+    assert int(teacher.actor_critic.updates) == updates - warmup
     metrics = pd.read_csv(tmp_path / "collect" / "collect-000" / "metrics.csv")
     trained = metrics[metrics["updates"] > 0]
     # Rows of warm-up updates have world-model losses but no actor-critic losses.
@@ -188,3 +192,7 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:
                           capture_output=True, text=True)
     assert done.returncode == 2
     assert done.stderr.startswith("error: unknown task 'nope'") and "Traceback" not in done.stderr
+    done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--set", "model_lr"],
+                          capture_output=True, text=True)
+    assert done.returncode == 2 and "--set takes KEY=VALUE" in done.stderr
+    assert "'model_lr'" in done.stderr and not any(tmp_path.iterdir())
