@@ -157,10 +157,11 @@ def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path) -> N
 
 def test_behaviour_overrides_reach_the_teacher_config() -> None:
     default = collect_preset("tiny").teacher_config(5, 1)
-    config = collect_preset("tiny", explore_noise=0.3, actor_entropy=1e-3,
-                            imag_starts=7).teacher_config(5, 1)
-    assert (config.explore_noise, config.actor_critic.entropy, config.actor_critic.imag_starts) \
-        == (0.3, 1e-3, 7)
+    config = collect_preset("tiny", explore_noise=0.3, actor_entropy=1e-3, imag_starts=7,
+                            horizon=50).teacher_config(5, 1)
+    behaviour = config.actor_critic
+    assert (config.explore_noise, behaviour.entropy, behaviour.imag_starts, behaviour.horizon) \
+        == (0.3, 1e-3, 7, 50)
     assert (default.explore_noise, default.actor_critic.entropy) == (0.0, 1e-4)
     assert config.world_model == default.world_model
     # DreamerV2's train ratio: nothing before prefill, then pretrain + 1 per train_every steps.

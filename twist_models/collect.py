@@ -129,6 +129,8 @@ class CollectConfig:
     updates cost a third of a full one)."""
     imag_starts: int | None = None
     """Override of the model preset's imagination starts (0 = all); None keeps the preset's."""
+    horizon: int | None = None
+    """Override of the actor-critic's imagination horizon; None keeps the preset's (15)."""
     explore_noise: float = 0.0
     """Std of Gaussian noise added to the teacher's sampled actions while collecting."""
     actor_entropy: float | None = None
@@ -157,6 +159,7 @@ class CollectConfig:
     def teacher_config(self, state_dim: int, action_dim: int) -> TeacherConfig:
         config = teacher_preset(self.model, state_dim, action_dim)
         behaviour = {k: v for k, v in (("imag_starts", self.imag_starts),
+                                       ("horizon", self.horizon),
                                        ("entropy", self.actor_entropy),
                                        ("actor_grad", self.actor_grad),
                                        ("return_norm", self.return_norm)) if v is not None}
