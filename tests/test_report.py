@@ -115,11 +115,11 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
     assert build_report(tmp_path, config) == summary
 
 
-def test_cli_refuses_bad_lists_without_traceback(tmp_path: Path) -> None:
-    for args, message in ((["--seeds", "0,x"], "--seeds must be a comma-separated list"),
-                          (["--tasks", "walker-fly"], "walker-fly"),
-                          (["--table-only"], "no evaluation results")):
-        result = subprocess.run([sys.executable, "-m", "twist_cli.report", "--out",
-                                 str(tmp_path), *args], capture_output=True, text=True)
-        assert result.returncode == 2, result.stderr
-        assert message in result.stderr and "Traceback" not in result.stderr
+def test_cli_refuses_bad_input_without_traceback(tmp_path: Path) -> None:
+    # One subprocess (the others' errors are library errors tested above): the CLI's error
+    # boundary turns them into one line and exit code 2.
+    result = subprocess.run([sys.executable, "-m", "twist_cli.report", "--out", str(tmp_path),
+                             "--seeds", "0,x"], capture_output=True, text=True)
+    assert result.returncode == 2, result.stderr
+    assert "--seeds must be a comma-separated list, got '0,x'" in result.stderr
+    assert "Traceback" not in result.stderr and not any(tmp_path.iterdir())
