@@ -4,6 +4,7 @@ repeated work, and the CLI's refusals."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -79,8 +80,12 @@ def test_config_names_the_bad_value() -> None:
 def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_path: Path) -> None:
     config = ReportConfig(tasks=("cartpole-balance",), seeds=(3,), preset="tiny",
                           eval_episodes=1, eval_max_steps=10)
-    summary = run_reproduction(tmp_path, config)
+    first = run_reproduction(tmp_path, dataclasses.replace(config, agents=("twist",)))
+    assert set(first["per_task"]["cartpole-balance"]) == {"oracle", "twist"}
     root = tmp_path / "cartpole-balance" / "seed-3"
+    twist_stamp = (root / "twist" / "agent.pt").stat().st_mtime_ns
+    summary = run_reproduction(tmp_path, config)  # the other columns join the same runs
+    assert (root / "twist" / "agent.pt").stat().st_mtime_ns == twist_stamp
     assert set(summary["per_task"]["cartpole-balance"]) == set(AGENTS)
 
     # Each column is the run its heading names.

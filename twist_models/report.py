@@ -142,7 +142,9 @@ class _Pipeline:
         for name in self.config.agents[1:]:
             agents[name] = self._train(name)
         eval_dir = self.root / "eval"
-        if not (eval_dir / "episodes.csv").exists():
+        episodes = eval_dir / "episodes.csv"
+        # Done only if it covers every agent asked for now (a report may add agents later).
+        if not episodes.exists() or not set(agents) <= set(pd.read_csv(episodes)["agent"]):
             self._announce("evaluating")
             c = self.config
             eval_config = EvalConfig(task=self.task, dr=c.eval_dr, episodes=c.eval_episodes,
