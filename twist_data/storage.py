@@ -182,6 +182,11 @@ def frame_encoder(array: zarr.Array) -> Encoder | None:
     return lambda frame: frame.tobytes()
 
 
+def shard_file(array: zarr.Array, array_dir: Path, index: int) -> Path:
+    """The file of image shard ``index`` (steps ``index * steps_per_file`` onwards)."""
+    return array_dir / array.metadata.encode_chunk_key((index, 0, 0, 0, 0))
+
+
 class FrameFile:
     """One image shard file, memory-mapped, with its parsed inner-chunk index.
 
@@ -238,8 +243,8 @@ class FrameReader:
             self._pid = os.getpid()
         f = self._files.get(index)
         if f is None:
-            key = self.array.metadata.encode_chunk_key((index, 0, 0, 0, 0))
-            f = FrameFile(self.array_dir / key, self.steps_per_file * self.views)
+            f = FrameFile(shard_file(self.array, self.array_dir, index),
+                          self.steps_per_file * self.views)
             self._files[index] = f
         return f
 
@@ -291,15 +296,14 @@ class FrameWriter:
         for file_index in range(start // spf, (stop - 1) // spf + 1):
             first = max(start, file_index * spf)
             last = min(stop, (file_index + 1) * spf)
-            key = self.array.metadata.encode_chunk_key((file_index, 0, 0, 0, 0))
-            path = self.array_dir / key
+            path = shard_file(self.array, self.array_dir, file_index)
             kept = self._kept_chunks(path, (first - file_index * spf) * k)
-            new = [self.encoder(np.ascontiguousarray(frames[t - start, v]))
-                   for t in range(first, last) for v in range(k)]
-            chunks = [c for c in (*kept, *new) if c is not None]
+            entries = kept + [self.encoder(np.ascontiguousarray(frames[t - start, v]))
+                              for t in range(first, last) for v in range(k)]
+            chunks = [c for c in entries if c is not None]
             offsets = np.full((spf * k, 2), _EMPTY, dtype="<u8")
             position = 0
-            for j, chunk in enumerate((*kept, *new)):
+            for j, chunk in enumerate(entries):
                 if chunk is not None:
                     offsets[j] = (position, len(chunk))
                     position += len(chunk)
