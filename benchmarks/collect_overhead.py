@@ -6,8 +6,10 @@ action repeat 2, the acting policy, K randomised renders per step, DR draws and 
 writes with their commits. Measured in the same run, per slice:
 
 * ``teacher``: the collector's loop with a ``--preset`` teacher acting (latent filter +
-  actor per step), as during collection;
-* ``random``: the same loop with uniform random actions (the prefill);
+  actor per step), rendering in a child process, as during collection;
+* ``teacher_inline``: the same loop rendering in-process (the loop before the render
+  process; the same pixels);
+* ``random``: the collector's loop with uniform random actions (the prefill);
 * ``physics``: physics and random actions alone, the floor no collector can beat.
 
 Medians over ``--repeats`` slices; prints one JSON line.
@@ -30,6 +32,7 @@ import numpy as np
 
 from twist_data.randomisation import dr_preset
 from twist_data.render import DRRenderer
+from twist_data.render_process import RenderProcess
 from twist_data.rollout import random_policy, record_episode, simulated_spec
 from twist_data.tasks import TaskEnv
 from twist_data.writer import ShardWriter
@@ -41,10 +44,11 @@ TARGET = 250.0
 
 
 def collection_slice(task: str, episodes: int, policy_name: str, preset: str,
-                     folder: Path) -> tuple[float, dict[str, float]]:
+                     folder: Path, render_process: bool = True) -> tuple[float, dict[str, float]]:
     env = TaskEnv(task, action_repeat=2, seed=0)
     timings: dict[str, float] = {}
-    with DRRenderer(task, dr_preset("train"), 64, 2) as renderer:
+    make_renderer = RenderProcess if render_process else DRRenderer
+    with make_renderer(task, dr_preset("train"), 64, 2) as renderer:
         sampler = renderer.sampler(0)
         shutil.rmtree(folder, ignore_errors=True)
         # One policy for all episodes: the teacher's latent resets itself at is_first.
@@ -54,7 +58,7 @@ def collection_slice(task: str, episodes: int, policy_name: str, preset: str,
         else:
             policy = random_policy(env.action_dim, 0)
         with ShardWriter.create(folder, "bench", simulated_spec(env, renderer)) as writer:
-            steps, start = 0, time.perf_counter()
+            steps, start = 0, time.perf_counter()  # the child's start-up is not timed
             for i in range(episodes):
                 with single_threaded():  # as the collector acts
                     episode, info = record_episode(env, renderer, sampler, policy, seed=i,
@@ -86,13 +90,16 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--preset", default="quick")
     args = parser.parse_args()
-    rates: dict[str, list[float]] = {"teacher": [], "random": [], "physics": []}
+    rates: dict[str, list[float]] = {"teacher": [], "teacher_inline": [], "random": [],
+                                     "physics": []}
     shares: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(args.repeats):
-            for name in ("teacher", "random"):
-                rate, shares_now = collection_slice(args.task, args.episodes, name, args.preset,
-                                                    Path(tmp) / name)
+            for name in ("teacher", "teacher_inline", "random"):
+                rate, shares_now = collection_slice(args.task, args.episodes,
+                                                    name.removesuffix("_inline"), args.preset,
+                                                    Path(tmp) / name,
+                                                    render_process=not name.endswith("_inline"))
                 rates[name].append(rate)
                 if name == "teacher":
                     shares = shares_now
@@ -104,6 +111,8 @@ def main() -> None:
         "teacher_time_shares": shares,
         "collection_vs_physics": round(medians["teacher_steps_per_s"]
                                        / medians["physics_steps_per_s"], 3),
+        "render_process_speedup": round(medians["teacher_steps_per_s"]
+                                        / medians["teacher_inline_steps_per_s"], 3),
         "target_steps_per_s": TARGET, "meets_target": medians["teacher_steps_per_s"] >= TARGET,
         "samples": {k: [round(x, 1) for x in v] for k, v in rates.items()},
     }))

@@ -11,7 +11,16 @@ import torch
 
 from twist_data.errors import CheckpointError, CheckpointMismatchError
 from twist_models.config import CNNConfig, WorldModelConfig, teacher_preset
-from twist_models.losses import categorical_kl, kl_balance_loss, lambda_returns
+from twist_models.losses import (
+    categorical_kl,
+    kl_balance_loss,
+    lambda_returns,
+    symexp,
+    symlog,
+    twohot_bins,
+    twohot_loss,
+    twohot_mean,
+)
 from twist_models.networks import ImageDecoder, ImageEncoder, single_threaded
 from twist_models.rssm import sample_one_hot
 from twist_models.teacher import Teacher, load_teacher, save_teacher
@@ -147,6 +156,26 @@ def test_lambda_returns_match_a_numpy_recursion() -> None:
     np.testing.assert_allclose(td.numpy(), reward + pcont * next_v, rtol=1e-10)
 
 
+def test_twohot_critic_loss_is_minimal_at_the_targets_own_encoding() -> None:
+    bins = torch.tensor([-2.0, 0.0, 1.0, 3.0])
+    target = torch.tensor([np.expm1(2.5), -np.expm1(0.5), 10_000.0], dtype=torch.float32)
+    # (symlog: 2.5, -0.5, 9.2)
+    # By hand: 2.5 lies 3/4 of the way from bin 1 to bin 3; -0.5 a quarter from 0 to -2;
+    # 9.2 is past the last bin, so it all goes there.
+    encoding = torch.tensor([[0, 0, 0.25, 0.75], [0.25, 0.75, 0, 0], [0, 0, 0, 1.0]])
+    np.testing.assert_allclose(symexp(symlog(target)), target, rtol=1e-6)
+    best = torch.log(encoding.clamp_min(1e-12))
+    np.testing.assert_allclose(twohot_mean(best, bins)[:2], target[:2], rtol=1e-5)
+    loss_at_best = twohot_loss(best, target, bins)
+    np.testing.assert_allclose(loss_at_best[:2], [-(0.25 * np.log(0.25) + 0.75 * np.log(0.75))] * 2,
+                               rtol=1e-5)
+    assert loss_at_best[2] < 1e-6
+    for _ in range(5):  # any other distribution is worse
+        other = best + 0.5 * torch.randn_like(best)
+        assert torch.all(twohot_loss(other, target, bins)[:2] > loss_at_best[:2])
+    assert twohot_bins().numel() == 255 and twohot_bins()[0] == -20.0
+
+
 def test_observe_resets_the_state_where_is_first() -> None:
     torch.manual_seed(0)
     wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
@@ -202,9 +231,11 @@ def test_tiny_world_model_overfits_a_toy_sequence() -> None:
     assert metrics["reward_loss"].item() - 0.5 * np.log(2 * np.pi) < 0.02
 
 
-@pytest.mark.parametrize("actor_grad, return_norm", [("dynamics", False), ("reinforce", True)])
+@pytest.mark.parametrize("actor_grad, return_norm, critic_head",
+                         [("dynamics", False, "mse"), ("reinforce", True, "twohot")])
 def test_actor_critic_learns_the_known_optimal_action_of_a_toy_task(actor_grad: str,
-                                                                     return_norm: bool) -> None:
+                                                                     return_norm: bool,
+                                                                     critic_head: str) -> None:
     """1-D toy: the state is the last action and arriving with action a pays 1 - a^2, so the
     optimal action is 0 whatever the state. The optimum sits at the centre of the action box on
     purpose: a truncated-normal actor facing an off-centre optimum rightly shifts its mean away
@@ -215,7 +246,7 @@ def test_actor_critic_learns_the_known_optimal_action_of_a_toy_task(actor_grad: 
         config, world_model=dataclasses.replace(config.world_model, model_lr=1e-3),
         actor_critic=dataclasses.replace(config.actor_critic, actor_lr=3e-4, critic_lr=3e-4,
                                          horizon=5, actor_grad=actor_grad,
-                                         return_norm=return_norm))
+                                         return_norm=return_norm, critic_head=critic_head))
     teacher = Teacher(config)
     b, t = 16, 10
     is_first = torch.zeros(b, t, dtype=torch.bool)

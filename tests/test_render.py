@@ -16,6 +16,7 @@ from twist_data.errors import BackgroundError, ConfigError, PhysicsStateError
 from twist_data.randomisation import DR_PRESETS, DRConfig, DRSampler, dr_preset
 from twist_data.reader import open_dataset
 from twist_data.render import DRRenderer
+from twist_data.render_process import RenderProcess, RenderProcessError
 from twist_data.rerender import check_reproduction, rerender_dataset
 from twist_data.rollout import random_policy, record_episode, simulated_spec
 from twist_data.tasks import TaskEnv
@@ -188,6 +189,48 @@ def test_every_task_renders_randomised_views(task: str, gl: None) -> None:
     assert images.shape == (3, 24, 24, 3)
     assert images.std() > 10  # textured, not blank
     assert not np.array_equal(images[0], images[1])
+
+
+# -- rendering in a child process ------------------------------------------------------------
+
+def test_render_process_records_the_same_episode_as_in_process(gl: None) -> None:
+    env = TaskEnv("cartpole-balance", max_steps=15)
+    recorded = []
+    for make in (DRRenderer, RenderProcess):
+        with make(env.name, dr_preset("train"), 24, 2) as r:
+            provenance = r.provenance()
+            # Two episodes: the second gather must not see the first one's frames.
+            episodes = [record_episode(env, r, r.sampler(4), random_policy(1, seed), seed=seed)[0]
+                        for seed in range(2)]
+        recorded.append((provenance, episodes))
+    (inline_provenance, inline), (child_provenance, child) = recorded
+    assert child_provenance == inline_provenance
+    for a, b in zip(inline, child, strict=True):
+        assert b.image.shape == (16, 2, 24, 24, 3)
+        np.testing.assert_array_equal(b.image, a.image)
+        np.testing.assert_array_equal(b.dr["background"], a.dr["background"])
+    assert not np.array_equal(child[0].image[:2], child[1].image[:2])
+
+
+def test_render_process_reports_failures_and_recovers(gl: None) -> None:
+    with RenderProcess("cartpole-balance", dr_preset("train"), 16, 2) as r:
+        sampler = r.sampler(0)
+        sampler.begin_episode()
+        params = sampler.sample()
+        r.submit(_state(), params)
+        r.submit(np.zeros(7), params)  # the wrong physics length for cartpole
+        with pytest.raises(RenderProcessError, match=r"PhysicsStateError.*length 5"):
+            r.gather()
+        r.submit(_state(), params)  # the failed batch is dropped, the next one is served
+        assert r.gather().shape == (1, 2, 16, 16, 3)
+        r._process.kill()
+        r._process.wait()
+        with pytest.raises(RenderProcessError, match="exited"):
+            r.submit(_state(), params)
+            r.gather()
+    with pytest.raises(BackgroundError, match="nowhere"):
+        RenderProcess("cartpole-balance", DRConfig(background="directory",
+                                                   background_dir="/nowhere"), 16, 2)
 
 
 # -- datasets: reproduce, re-render, add views ----------------------------------------------

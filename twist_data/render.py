@@ -28,7 +28,7 @@ import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -59,6 +59,22 @@ def background_bank(config: DRConfig, texture_size: int) -> BackgroundBank | Non
         return directory_bank(Path(config.background_dir), texture_size)
     return procedural_bank(config.background, config.background_count, texture_size,
                            config.background_seed)
+
+
+class FrameRenderer(Protocol):
+    """What recording needs of a renderer: :class:`DRRenderer` (in-process) or
+    :class:`twist_data.render_process.RenderProcess` (a child process, pipelined)."""
+
+    views: int
+    image_size: int
+
+    def sampler(self, seed: int = 0) -> DRSampler: ...
+
+    def provenance(self, first_view: int = 0) -> dict[str, Any]: ...
+
+    def submit(self, physics: np.ndarray, params: Mapping[str, np.ndarray]) -> None: ...
+
+    def gather(self) -> np.ndarray: ...
 
 
 class DRRenderer:
@@ -120,6 +136,7 @@ class DRRenderer:
         self._camera.fixedcamid = self.spec.camera
         self._rgb = np.empty((self._rows * side, self._cols * side, 3), np.uint8)
         self._depth = np.empty((self._rows * side, self._cols * side), np.float32)
+        self._submitted: list[np.ndarray] = []
 
     def _make_context(self, width: int, height: int):
         try:
@@ -194,6 +211,19 @@ class DRRenderer:
             else:
                 out[v] = view
         return out
+
+    def submit(self, physics: np.ndarray, params: Mapping[str, np.ndarray]) -> None:
+        """Render now and keep the frames for :meth:`gather` (the in-process twin of
+        :meth:`twist_data.render_process.RenderProcess.submit`)."""
+        self._submitted.append(self.render(physics, params))
+
+    def gather(self) -> np.ndarray:
+        """Every frame submitted since the last gather, in order: [T, K, H, W, 3] uint8."""
+        side = self.image_size
+        frames = (np.stack(self._submitted) if self._submitted
+                  else np.empty((0, self.views, side, side, 3), np.uint8))
+        self._submitted = []
+        return frames
 
     def _adjust_scene(self, light: float, shift: np.ndarray, rotation: np.ndarray) -> None:
         scene = self._scene

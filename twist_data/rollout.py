@@ -6,6 +6,7 @@ sheets and the renderer benchmark drive it with :func:`random_policy`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -25,7 +26,7 @@ from twist_data.randomisation import (
     dynamics_params,
     stack_view_params,
 )
-from twist_data.render import DRRenderer
+from twist_data.render import DRRenderer, FrameRenderer
 from twist_data.schema import DatasetSpec, Episode, EpisodeInfo
 from twist_data.tasks import Step, TaskEnv
 from twist_data.writer import ShardWriter
@@ -57,7 +58,7 @@ def library_versions() -> dict[str, str]:
             "dm_control": getattr(dm_control, "__version__", "unknown")}
 
 
-def simulated_spec(env: TaskEnv, renderer: DRRenderer, extra: dict[str, Any] | None = None) -> DatasetSpec:
+def simulated_spec(env: TaskEnv, renderer: FrameRenderer, extra: dict[str, Any] | None = None) -> DatasetSpec:
     """The dataset spec of episodes recorded from ``env`` through ``renderer``."""
     return DatasetSpec(
         views=renderer.views, image_height=renderer.image_size, image_width=renderer.image_size,
@@ -69,14 +70,15 @@ def simulated_spec(env: TaskEnv, renderer: DRRenderer, extra: dict[str, Any] | N
     )
 
 
-def record_episode(env: TaskEnv, renderer: DRRenderer, sampler: DRSampler, policy: Policy,
+def record_episode(env: TaskEnv, renderer: FrameRenderer, sampler: DRSampler, policy: Policy,
                    seed: int, policy_name: str = "random", teacher_step: int = -1,
                    env_step: int = 0, timings: dict[str, float] | None = None,
                    ) -> tuple[Episode, EpisodeInfo]:
     """Run one episode from ``env.reset(seed)`` and render K randomised views of every step.
 
     ``timings``, when given, accumulates seconds spent in ``physics``, ``render`` (DR draws
-    included) and ``policy``.
+    included; with a render process, submitting and waiting for the last frames) and
+    ``policy``.
     """
     clock = timings if timings is not None else {}
     for part in ("physics", "render", "policy"):
@@ -93,24 +95,30 @@ def record_episode(env: TaskEnv, renderer: DRRenderer, sampler: DRSampler, polic
     step = env.reset(seed=seed, dynamics=dynamics)
     steps: list[Step] = []
     actions: list[np.ndarray] = [np.zeros(env.action_dim, np.float32)]
-    images: list[np.ndarray] = []
     params: list[dict[str, np.ndarray]] = []
     lap("physics")
-    while True:
-        view_params = sampler.sample()
-        images.append(renderer.render(step.physics, view_params))
-        params.append(view_params)
-        steps.append(step)
-        lap("render")
-        if step.is_last:
-            break
-        action = np.clip(np.asarray(policy(step), np.float32), -1.0, 1.0)
-        actions.append(action)
-        lap("policy")
-        step = env.step(action)
-        lap("physics")
+    try:
+        while True:
+            view_params = sampler.sample()
+            renderer.submit(step.physics, view_params)
+            params.append(view_params)
+            steps.append(step)
+            lap("render")
+            if step.is_last:
+                break
+            action = np.clip(np.asarray(policy(step), np.float32), -1.0, 1.0)
+            actions.append(action)
+            lap("policy")
+            step = env.step(action)
+            lap("physics")
+    except BaseException:
+        with contextlib.suppress(Exception):  # drop this episode's frames, keep none pending
+            renderer.gather()
+        raise
+    images = renderer.gather()
+    lap("render")
     episode = Episode(
-        image=np.stack(images),
+        image=images,
         state=np.stack([s.state for s in steps]),
         physics=np.stack([s.physics for s in steps]),
         action=np.stack(actions),

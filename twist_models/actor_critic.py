@@ -10,7 +10,13 @@ import torch
 from torch import nn
 
 from twist_models.config import ActorCriticConfig, OptimConfig
-from twist_models.losses import gaussian_nll, lambda_returns
+from twist_models.losses import (
+    gaussian_nll,
+    lambda_returns,
+    twohot_bins,
+    twohot_loss,
+    twohot_mean,
+)
 from twist_models.networks import MLP
 from twist_models.rssm import RSSM, State
 from twist_models.world_model import WorldModel
@@ -81,7 +87,15 @@ class ActorCritic(nn.Module):
         super().__init__()
         self.config = config
         self.actor = Actor(feature_dim, action_dim, config)
-        self.critic = MLP(feature_dim, 1, config.critic)
+        if config.critic_head == "twohot":
+            self.register_buffer("bins", twohot_bins())
+            self.critic = MLP(feature_dim, self.bins.numel(), config.critic)
+            # DreamerV3 zeroes the output layer: every state starts at value 0, uniform over
+            # the bins, instead of at a random value the first returns must unlearn.
+            nn.init.zeros_(self.critic[-1].weight)
+            nn.init.zeros_(self.critic[-1].bias)
+        else:
+            self.critic = MLP(feature_dim, 1, config.critic)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.grad_clip = optim.grad_clip
         self.actor_opt = torch.optim.AdamW(self.actor.parameters(), config.actor_lr, eps=optim.eps,
@@ -98,7 +112,17 @@ class ActorCritic(nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def value(self, feature: torch.Tensor, target: bool = False) -> torch.Tensor:
-        return (self.target_critic if target else self.critic)(feature).squeeze(-1)
+        """The (slow target) critic's value of ``feature`` [..., F] -> [...]."""
+        out = (self.target_critic if target else self.critic)(feature)
+        if self.config.critic_head == "twohot":
+            return twohot_mean(out, self.bins)
+        return out.squeeze(-1)
+
+    def _critic_loss(self, feature: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
+        """Per-state critic loss of ``feature`` [N, H, F] against ``returns`` [H, N] -> [H, N]."""
+        if self.config.critic_head == "twohot":
+            return twohot_loss(self.critic(feature).transpose(0, 1), returns, self.bins)
+        return gaussian_nll(self.value(feature).T, returns, 0)
 
     def train_step(self, world_model: WorldModel, start: State) -> dict[str, torch.Tensor]:
         """One actor and one critic update from imagined rollouts of the ``start`` states
@@ -144,8 +168,8 @@ class ActorCritic(nn.Module):
             for p in frozen:
                 p.requires_grad_(True)
         self._step(self.actor_opt, actor_loss, self.actor)
-        critic_value = self.value(feature[:, :-1].detach().contiguous()).T
-        critic_loss = (weight * gaussian_nll(critic_value, returns.detach(), 0)).mean()
+        critic_loss = (weight * self._critic_loss(feature[:, :-1].detach().contiguous(),
+                                                  returns.detach())).mean()
         self._step(self.critic_opt, critic_loss, self.critic)
         self.updates += 1
         if int(self.updates) % c.slow_target_every == 0:

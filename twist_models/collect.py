@@ -47,7 +47,8 @@ import torch
 from twist_data.errors import ConfigError, TwistError
 from twist_data.randomisation import DR_PRESETS, derived_seed, dr_preset
 from twist_data.reader import ShardReader, open_dataset
-from twist_data.render import DRRenderer
+from twist_data.render import DRRenderer, FrameRenderer
+from twist_data.render_process import RenderProcess
 from twist_data.rollout import Policy, random_policy, record_episode, simulated_spec
 from twist_data.sampler import SamplerConfig, WindowSampler
 from twist_data.tasks import DEFAULT_TASK, Dynamics, Step, TaskEnv, task_spec
@@ -139,6 +140,8 @@ class CollectConfig:
     """Override of the actor's gradient (``dynamics``/``reinforce``); None keeps the preset's."""
     return_norm: bool | None = None
     """Override of DreamerV3's return normalisation; None keeps the preset's."""
+    critic_head: str | None = None
+    """Override of the critic's output (``mse``/``twohot``); None keeps the preset's."""
     model_lr: float | None = None
     """Override of the world model's learning rate; None keeps the preset's."""
 
@@ -162,7 +165,8 @@ class CollectConfig:
                                        ("horizon", self.horizon),
                                        ("entropy", self.actor_entropy),
                                        ("actor_grad", self.actor_grad),
-                                       ("return_norm", self.return_norm)) if v is not None}
+                                       ("return_norm", self.return_norm),
+                                       ("critic_head", self.critic_head)) if v is not None}
         model = {} if self.model_lr is None else {"model_lr": self.model_lr}
         return dataclasses.replace(
             config, explore_noise=self.explore_noise,
@@ -268,9 +272,13 @@ def run_dir(out: str | os.PathLike[str], shard: str) -> Path:
 
 def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "collect-000",
             resume: bool = False, device: str = "cpu",
-            on_progress: Callable[[Progress], None] | None = None) -> CollectSummary:
+            on_progress: Callable[[Progress], None] | None = None,
+            render_process: bool = True) -> CollectSummary:
     """Collect ``config.frames`` frames into shard ``shard`` of the dataset at ``out`` while
-    training a teacher on them; ``resume`` continues an interrupted run of the same config."""
+    training a teacher on them; ``resume`` continues an interrupted run of the same config.
+
+    ``render_process`` renders in a child process, overlapped with physics and acting (the
+    same pixels; False renders in this process, e.g. to profile or debug the renderer)."""
     out = Path(out)
     path = shard_path(out, shard)
     folder = run_dir(out, shard)
@@ -280,7 +288,8 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
     dr_config = dr_preset(config.dr, config.backgrounds)
     teacher_config = config.teacher_config(env.state_dim, env.action_dim)
     torch_device = torch.device(device)
-    with DRRenderer(config.task, dr_config, config.image_size, config.views) as renderer:
+    make_renderer = RenderProcess if render_process else DRRenderer
+    with make_renderer(config.task, dr_config, config.image_size, config.views) as renderer:
         folder.mkdir(parents=True, exist_ok=True)
         if path.exists():
             writer = ShardWriter.resume(path)
@@ -321,7 +330,7 @@ class _Run:
     """The state of one collector run; :meth:`loop` drives it."""
 
     def __init__(self, out: Path, path: Path, folder: Path, config: CollectConfig,
-                 teacher_config: TeacherConfig, env: TaskEnv, renderer: DRRenderer,
+                 teacher_config: TeacherConfig, env: TaskEnv, renderer: FrameRenderer,
                  writer: ShardWriter, seed: int, device: torch.device) -> None:
         self.out, self.path, self.folder, self.config = out, path, folder, config
         self.env, self.renderer, self.writer, self.seed, self.device = (env, renderer, writer,

@@ -96,6 +96,7 @@ class CNNConfig:
 
 
 ACTOR_GRADS = ("dynamics", "reinforce")
+CRITIC_HEADS = ("mse", "twohot")
 
 
 @dataclass(frozen=True)
@@ -131,9 +132,16 @@ class ActorCriticConfig:
     return_norm: bool = False
     """Divide the actor's objective by max(1, EMA of the 5-95% range of returns) (DreamerV3),
     which keeps the actor's step size independent of the task's reward scale."""
+    critic_head: str = "mse"
+    """``mse``: the critic regresses returns (DreamerV2); ``twohot``: a categorical over 255
+    symlog-spaced bins trained on two-hot targets (DreamerV3), whose output need not grow to
+    the return's scale (~100 on DMC at gamma 0.99) one small Adam step at a time."""
 
     def __post_init__(self) -> None:
         require_positive(self, "horizon", "slow_target_every", "actor_lr", "critic_lr", "min_std")
+        if self.critic_head not in CRITIC_HEADS:
+            raise ConfigError(f"critic_head must be one of {', '.join(CRITIC_HEADS)}, "
+                              f"got {self.critic_head!r}")
         if self.actor_grad not in ACTOR_GRADS:
             raise ConfigError(f"actor_grad must be one of {', '.join(ACTOR_GRADS)}, "
                               f"got {self.actor_grad!r}")

@@ -57,6 +57,41 @@ def gaussian_nll(mean: torch.Tensor, target: torch.Tensor, event_dims: int = 1) 
     return nll.sum(tuple(range(-event_dims, 0))) if event_dims else nll
 
 
+# -- DreamerV3's critic: a categorical over symlog-spaced bins ---------------------------------
+def symlog(x: torch.Tensor) -> torch.Tensor:
+    """sign(x) log(1 + |x|), elementwise: compresses large magnitudes, ~identity near 0."""
+    return torch.sign(x) * torch.log1p(x.abs())
+
+
+def symexp(x: torch.Tensor) -> torch.Tensor:
+    """The inverse of :func:`symlog`, elementwise."""
+    return torch.sign(x) * torch.expm1(x.abs())
+
+
+def twohot_bins(count: int = 255, limit: float = 20.0) -> torch.Tensor:
+    """``count`` bin centres evenly spaced over [-limit, limit] in symlog space (DreamerV3)."""
+    return torch.linspace(-limit, limit, count)
+
+
+def twohot_mean(logits: torch.Tensor, bins: torch.Tensor) -> torch.Tensor:
+    """The value a categorical over ``bins`` [N] predicts: logits [..., N] -> [...], the
+    symexp of its mean in symlog space."""
+    return symexp((torch.softmax(logits, -1) * bins).sum(-1))
+
+
+def twohot_loss(logits: torch.Tensor, target: torch.Tensor, bins: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of logits [..., N] against the two-hot encoding of symlog(``target``)
+    [...] over increasing ``bins`` [N]: the two bins around it share weight 1 in proportion
+    to closeness, so the encoding's mean is the target exactly. Returns [...]."""
+    y = symlog(target).clamp(float(bins[0]), float(bins[-1])).contiguous()
+    upper = torch.searchsorted(bins, y, right=True).clamp(1, bins.numel() - 1)
+    lower = upper - 1
+    weight_upper = ((y - bins[lower]) / (bins[upper] - bins[lower])).clamp(0.0, 1.0)
+    log_probs = F.log_softmax(logits, -1)
+    return -((1 - weight_upper) * log_probs.gather(-1, lower[..., None]).squeeze(-1)
+             + weight_upper * log_probs.gather(-1, upper[..., None]).squeeze(-1))
+
+
 # -- TWIST distillation (the teacher's tensors are targets: no gradient reaches them) ------------
 def distillation_loss(student_post: dict[str, torch.Tensor], student_prior_logits: torch.Tensor,
                       teacher_post: dict[str, torch.Tensor], teacher_prior_logits: torch.Tensor
