@@ -87,9 +87,15 @@ def test_sigkilled_cli_run_resumes_without_duplicates_or_losses(tmp_path: Path) 
             time.sleep(0.05)
         else:
             pytest.fail("the collector committed nothing in 120 s")
+        renderers = _children(proc.pid)
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
+    assert renderers, "the collector should render in a child process"
+    deadline = time.monotonic() + 10  # the render child exits once its pipe closes
+    while any(map(_running, renderers)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(map(_running, renderers))
     killed_at = _committed(shard)
     assert verify_dataset(out).ok  # consistent at the instant of the kill
     done = subprocess.run([*args, "--resume"], capture_output=True, text=True)
@@ -104,6 +110,18 @@ def test_sigkilled_cli_run_resumes_without_duplicates_or_losses(tmp_path: Path) 
     assert steps == [100 * i for i in range(8)]
     metrics = pd.read_csv(out / "collect" / "collect-000" / "metrics.csv")
     assert metrics["episodes"].is_unique
+
+
+def _children(pid: int) -> list[int]:
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+def _running(pid: int) -> bool:
+    """Alive and not a zombie (an orphan's zombie waits for whoever reaps in a container)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
 
 
 def _committed(shard: Path) -> int:
