@@ -28,7 +28,7 @@ from twist_models.collect import (
     collect_preset,
     shard_seed,
 )
-from twist_models.teacher import find_teacher, load_teacher
+from twist_models.teacher import Teacher, find_teacher, load_teacher
 
 pytestmark = pytest.mark.usefixtures("gl")
 COLLECT = [sys.executable, "-m", "twist_cli.collect"]
@@ -176,10 +176,14 @@ def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path) -> N
 def test_behaviour_overrides_reach_the_teacher_config() -> None:
     default = collect_preset("tiny").teacher_config(5, 1)
     config = collect_preset("tiny", explore_noise=0.3, actor_entropy=1e-3, imag_starts=7,
-                            horizon=50).teacher_config(5, 1)
+                            horizon=50, critic_head="twohot", actor_lr=2e-5, critic_lr=3e-4,
+                            slow_target_every=1).teacher_config(5, 1)
     behaviour = config.actor_critic
     assert (config.explore_noise, behaviour.entropy, behaviour.imag_starts, behaviour.horizon) \
         == (0.3, 1e-3, 7, 50)
+    assert (behaviour.critic_head, behaviour.actor_lr, behaviour.critic_lr,
+            behaviour.slow_target_every) == ("twohot", 2e-5, 3e-4, 1)
+    assert Teacher(config).actor_critic.critic[-1].out_features == 255
     assert (default.explore_noise, default.actor_critic.entropy) == (0.0, 1e-4)
     assert config.world_model == default.world_model
     # DreamerV2's train ratio: nothing before prefill, then pretrain + 1 per train_every steps.

@@ -142,6 +142,12 @@ class CollectConfig:
     """Override of DreamerV3's return normalisation; None keeps the preset's."""
     critic_head: str | None = None
     """Override of the critic's output (``mse``/``twohot``); None keeps the preset's."""
+    actor_lr: float | None = None
+    """Override of the actor's learning rate; None keeps the preset's."""
+    critic_lr: float | None = None
+    """Override of the critic's learning rate; None keeps the preset's."""
+    slow_target_every: int | None = None
+    """Override of the critic updates between slow-target copies; None keeps the preset's."""
     model_lr: float | None = None
     """Override of the world model's learning rate; None keeps the preset's."""
 
@@ -166,7 +172,11 @@ class CollectConfig:
                                        ("entropy", self.actor_entropy),
                                        ("actor_grad", self.actor_grad),
                                        ("return_norm", self.return_norm),
-                                       ("critic_head", self.critic_head)) if v is not None}
+                                       ("critic_head", self.critic_head),
+                                       ("actor_lr", self.actor_lr),
+                                       ("critic_lr", self.critic_lr),
+                                       ("slow_target_every", self.slow_target_every))
+                    if v is not None}
         model = {} if self.model_lr is None else {"model_lr": self.model_lr}
         return dataclasses.replace(
             config, explore_noise=self.explore_noise,
