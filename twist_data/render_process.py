@@ -3,8 +3,8 @@
 Why a process: on a 2-core machine the collector's loop is physics + acting + rendering, and
 rendering (Mesa llvmpipe, ~40% of the loop) needs nothing from the other two but the physics
 vector and the DR parameters of each step. A thread would share the GIL with the Python-heavy
-physics and policy code (measured: a render thread beside a busy Python loop ran ~10x slower
-than alone); a spawned process renders on the second core while the first steps the
+physics and policy code (measured: 28 K=2 renders/s in a thread beside a busy Python loop,
+638 alone); a spawned process renders on the second core while the first steps the
 simulator. Frames are pure functions of (physics, parameters), so they are the same pixels
 as :class:`~twist_data.render.DRRenderer` renders in-process.
 
