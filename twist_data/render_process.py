@@ -123,7 +123,6 @@ class RenderProcess:
             raise RenderUnavailableError(f"the render process for {task!r} could not start: "
                                          f"{name}: {message}")
         self._info = payload
-        self.nominal_colours = np.asarray(payload["nominal_colours"], np.float32)
 
     def sampler(self, seed: int = 0) -> DRSampler:
         """A parameter sampler matched to the child's bank, nominal colours and K."""

@@ -108,8 +108,7 @@ class RSSM(nn.Module):
                   is_first: torch.Tensor | None = None,
                   uniform: torch.Tensor | None = None) -> State:
         """The posterior state alone: what acting needs (the prior head is not run)."""
-        # Masking costs ~100 us per acting step, and a step rarely starts an episode.
-        if is_first is not None and bool(is_first.any()):
+        if is_first is not None:
             keep = (~is_first.bool()).to(action.dtype)
             prev = {k: v * keep.reshape(*keep.shape, *([1] * (v.dim() - keep.dim())))
                     for k, v in prev.items()}

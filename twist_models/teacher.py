@@ -82,9 +82,11 @@ class Teacher(Dreamer):
     # inference_mode: ~15% less per-call overhead than no_grad on this batch-1 path.
     @torch.inference_mode()
     def policy(self, state: torch.Tensor, latent: State | None, prev_action: torch.Tensor,
-               is_first: torch.Tensor, explore: bool = True) -> tuple[torch.Tensor, State]:
+               is_first: torch.Tensor | None, explore: bool = True
+               ) -> tuple[torch.Tensor, State]:
         """Act on privileged ``state`` [N, S] given the previous latent (None at the start),
-        previous action [N, A] and is_first [N]. Returns (action [N, A] in [-1, 1], latent).
+        previous action [N, A] and is_first [N] (None: no episode starts at this step).
+        Returns (action [N, A] in [-1, 1], latent).
 
         ``explore`` samples the actor (plus ``explore_noise``); otherwise the actor's mode.
         """
