@@ -177,12 +177,12 @@ def test_behaviour_overrides_reach_the_teacher_config() -> None:
     default = collect_preset("tiny").teacher_config(5, 1)
     config = collect_preset("tiny", explore_noise=0.3, actor_entropy=1e-3, imag_starts=7,
                             horizon=50, critic_head="twohot", actor_lr=2e-5, critic_lr=3e-4,
-                            slow_target_every=1).teacher_config(5, 1)
+                            slow_target_every=1, discount=0.96).teacher_config(5, 1)
     behaviour = config.actor_critic
     assert (config.explore_noise, behaviour.entropy, behaviour.imag_starts, behaviour.horizon) \
         == (0.3, 1e-3, 7, 50)
     assert (behaviour.critic_head, behaviour.actor_lr, behaviour.critic_lr,
-            behaviour.slow_target_every) == ("twohot", 2e-5, 3e-4, 1)
+            behaviour.slow_target_every, behaviour.discount) == ("twohot", 2e-5, 3e-4, 1, 0.96)
     assert Teacher(config).actor_critic.critic[-1].out_features == 255
     assert (default.explore_noise, default.actor_critic.entropy) == (0.0, 1e-4)
     assert config.world_model == default.world_model

@@ -150,6 +150,10 @@ class CollectConfig:
     """Override of the critic updates between slow-target copies; None keeps the preset's."""
     model_lr: float | None = None
     """Override of the world model's learning rate; None keeps the preset's."""
+    discount: float | None = None
+    """Override of the actor-critic's per-agent-step discount; None keeps the preset's (0.99,
+    DreamerV2's at action repeat 2: keep gamma ** (1 / action_repeat) fixed to keep the
+    horizon in seconds)."""
 
     def __post_init__(self) -> None:
         task_spec(self.task)  # raises UnknownTaskError naming the valid tasks
@@ -175,7 +179,8 @@ class CollectConfig:
                                        ("critic_head", self.critic_head),
                                        ("actor_lr", self.actor_lr),
                                        ("critic_lr", self.critic_lr),
-                                       ("slow_target_every", self.slow_target_every))
+                                       ("slow_target_every", self.slow_target_every),
+                                       ("discount", self.discount))
                     if v is not None}
         model = {} if self.model_lr is None else {"model_lr": self.model_lr}
         return dataclasses.replace(
