@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from twist_data.errors import CheckpointError, CheckpointMismatchError
+from twist_data.errors import CheckpointError, CheckpointMismatchError, ConfigError
 from twist_models.config import CNNConfig, WorldModelConfig, teacher_preset
 from twist_models.losses import (
     categorical_kl,
@@ -206,6 +206,35 @@ def test_imagine_with_given_actions_is_deterministic_given_the_noise() -> None:
     torch.manual_seed(8)
     other, _ = wm.rssm.imagine(start, 5, actions=actions)
     assert not torch.equal(other["stoch"], runs[0]["stoch"])
+
+
+def _overshoot_loss(wm: WorldModel, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    torch.manual_seed(3)
+    return wm.loss(batch)[2]["overshoot_loss"]
+
+
+def test_overshoot_compares_rollouts_only_until_the_next_episode() -> None:
+    config = dataclasses.replace(teacher_preset("tiny", 5, 2).world_model, overshoot=4,
+                                 overshoot_starts=16)
+    wm = WorldModel(config)
+    batch = _batch(b=2, t=8)
+    batch["is_first"][:, 4] = True  # every rollout (starts 0..3, 4 steps) crosses step 4
+    loss = _overshoot_loss(wm, batch)
+    later = {k: v.clone() for k, v in batch.items()}
+    later["state"][:, 4:] += 100.0
+    later["reward"][:, 4:] -= 100.0
+    assert torch.equal(_overshoot_loss(wm, later), loss)
+    earlier = {k: v.clone() for k, v in batch.items()}
+    earlier["state"][:, 1:4] += 100.0
+    assert _overshoot_loss(wm, earlier) > loss + 1000
+    # Windows shorter than the overshoot roll out as far as they reach.
+    short = {k: v[:, :3] for k, v in batch.items()}
+    assert torch.isfinite(_overshoot_loss(WorldModel(config), short))
+
+
+def test_overshoot_is_refused_for_image_models() -> None:
+    with pytest.raises(ConfigError, match="overshoot is for state models"):
+        WorldModelConfig(obs="image", overshoot=15)
 
 
 def test_tiny_world_model_overfits_a_toy_sequence() -> None:

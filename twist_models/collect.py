@@ -76,7 +76,8 @@ METRIC_COLUMNS = (
     "frames", "episodes", "updates", "return", "wall_s",
     *(f"seconds_{part}" for part in TIMED_PARTS),
     "model_loss", "kl", "recon_loss", "reward_loss", "discount_loss", "model_grad_norm",
-    "actor_loss", "critic_loss", "imagined_return", "imagined_reward", "actor_entropy")
+    "actor_loss", "critic_loss", "imagined_return", "imagined_reward", "actor_entropy",
+    "overshoot_loss")
 
 
 class CollectError(TwistError):
@@ -150,6 +151,9 @@ class CollectConfig:
     """Override of the critic updates between slow-target copies; None keeps the preset's."""
     model_lr: float | None = None
     """Override of the world model's learning rate; None keeps the preset's."""
+    overshoot: int | None = None
+    """Override of the world model's open-loop overshooting steps (0: off); None keeps the
+    preset's."""
     discount: float | None = None
     """Override of the actor-critic's per-agent-step discount; None keeps the preset's (0.99,
     DreamerV2's at action repeat 2: keep gamma ** (1 / action_repeat) fixed to keep the
@@ -182,7 +186,8 @@ class CollectConfig:
                                        ("slow_target_every", self.slow_target_every),
                                        ("discount", self.discount))
                     if v is not None}
-        model = {} if self.model_lr is None else {"model_lr": self.model_lr}
+        model = {k: v for k, v in (("model_lr", self.model_lr), ("overshoot", self.overshoot))
+                 if v is not None}
         return dataclasses.replace(
             config, explore_noise=self.explore_noise,
             world_model=dataclasses.replace(config.world_model, **model),

@@ -194,13 +194,23 @@ class WorldModelConfig:
     recon: str = "obs"
     """What the decoder reconstructs: ``obs`` (what the encoder read) or ``state`` (the
     privileged state from images: the paper's State Recon baseline)."""
+    overshoot: int = 0
+    """Open-loop steps of the prior, driven by the recorded actions, whose decoded states and
+    rewards are also fitted to the recorded ones (0: off, as DreamerV2; state models only)."""
+    overshoot_starts: int = 64
+    """Posterior states (drawn at random from the batch) that start the open-loop rollouts."""
 
     def __post_init__(self) -> None:
         if self.obs not in ("state", "image"):
             raise ConfigError(f"obs must be 'state' or 'image', got {self.obs!r}")
         if self.recon not in ("obs", "state"):
             raise ConfigError(f"recon must be 'obs' or 'state', got {self.recon!r}")
-        require_positive(self, "action_dim", "model_lr")
+        require_positive(self, "action_dim", "model_lr", "overshoot_starts")
+        require_non_negative(self, "overshoot")
+        if self.overshoot and self.obs != "state":
+            raise ConfigError(f"overshoot is for state models (decoding images open-loop would "
+                              f"dominate the update), got overshoot={self.overshoot} with "
+                              f"obs={self.obs!r}")
         if self.obs == "state" or self.recon == "state":
             require_positive(self, "state_dim")
 

@@ -67,8 +67,36 @@ class WorldModel(nn.Module):
                 self.discount_head(feature).squeeze(-1), continues)
             loss = loss + discount
             metrics["discount_loss"] = discount.detach()
+        if c.overshoot:
+            overshoot = self._overshoot_loss(post, batch)
+            loss = loss + overshoot
+            metrics["overshoot_loss"] = overshoot.detach()
         metrics["model_loss"] = loss.detach()
         return loss, post, metrics
+
+    def _overshoot_loss(self, post: State, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Decoder and reward NLL of open-loop prior rollouts from random posterior states,
+        driven by the recorded actions: a scalar.
+
+        Why: the posterior sees every next state, so the one-step losses barely ask the
+        deterministic path to carry an action's effect, and imagination (which is open loop)
+        then under-rates how much actions matter (README, "Teacher learning"). Fitting the
+        open-loop predictions themselves asks for exactly what imagination uses."""
+        c = self.config
+        batch_size, length = batch["is_first"].shape
+        horizon = min(c.overshoot, length - 1)  # short windows (tests) roll out what they hold
+        device = batch["is_first"].device
+        rows = torch.randint(batch_size, (c.overshoot_starts, 1), device=device)
+        starts = torch.randint(length - horizon, (c.overshoot_starts, 1), device=device)
+        steps = starts + torch.arange(1, horizon + 1, device=device)  # [N, H]
+        start = {k: v[rows[:, 0], starts[:, 0]] for k, v in post.items()}
+        states, _ = self.rssm.imagine(start, horizon, actions=batch["action"][rows, steps])
+        feature = self.rssm.feature({k: v[:, 1:] for k, v in states.items()})  # [N, H, F]
+        # A rollout is compared with the recording only until the recording's next episode.
+        valid = (batch["is_first"][rows, steps].int().cumsum(1) == 0).float()
+        nll = (gaussian_nll(self.decoder(feature), batch["state"][rows, steps])
+               + gaussian_nll(self.reward(feature), batch["reward"][rows, steps], 0))
+        return (nll * valid).sum() / valid.sum().clamp_min(1.0)
 
     def reward(self, feature: torch.Tensor) -> torch.Tensor:
         """Predicted reward for arriving in the state of ``feature``: [..., F] -> [...]."""
