@@ -175,19 +175,12 @@ class CollectConfig:
 
     def teacher_config(self, state_dim: int, action_dim: int) -> TeacherConfig:
         config = teacher_preset(self.model, state_dim, action_dim)
-        behaviour = {k: v for k, v in (("imag_starts", self.imag_starts),
-                                       ("horizon", self.horizon),
-                                       ("entropy", self.actor_entropy),
-                                       ("actor_grad", self.actor_grad),
-                                       ("return_norm", self.return_norm),
-                                       ("critic_head", self.critic_head),
-                                       ("actor_lr", self.actor_lr),
-                                       ("critic_lr", self.critic_lr),
-                                       ("slow_target_every", self.slow_target_every),
-                                       ("discount", self.discount))
-                    if v is not None}
-        model = {k: v for k, v in (("model_lr", self.model_lr), ("overshoot", self.overshoot))
-                 if v is not None}
+        behaviour = _given(imag_starts=self.imag_starts, horizon=self.horizon,
+                           entropy=self.actor_entropy, actor_grad=self.actor_grad,
+                           return_norm=self.return_norm, critic_head=self.critic_head,
+                           actor_lr=self.actor_lr, critic_lr=self.critic_lr,
+                           slow_target_every=self.slow_target_every, discount=self.discount)
+        model = _given(model_lr=self.model_lr, overshoot=self.overshoot)
         return dataclasses.replace(
             config, explore_noise=self.explore_noise,
             world_model=dataclasses.replace(config.world_model, **model),
@@ -223,8 +216,12 @@ def collect_preset(name: str, **overrides: Any) -> CollectConfig:
     if name not in COLLECT_PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: "
                           f"{', '.join(COLLECT_PRESETS)}")
-    return dataclasses.replace(COLLECT_PRESETS[name],
-                               **{k: v for k, v in overrides.items() if v is not None})
+    return dataclasses.replace(COLLECT_PRESETS[name], **_given(**overrides))
+
+
+def _given(**values: Any) -> dict[str, Any]:
+    """The keyword arguments that are not None (the overrides a user actually set)."""
+    return {k: v for k, v in values.items() if v is not None}
 
 
 def shard_seed(seed: int, shard: str) -> int:

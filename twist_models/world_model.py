@@ -91,7 +91,7 @@ class WorldModel(nn.Module):
         steps = starts + torch.arange(1, horizon + 1, device=device)  # [N, H]
         start = {k: v[rows[:, 0], starts[:, 0]] for k, v in post.items()}
         states, _ = self.rssm.imagine(start, horizon, actions=batch["action"][rows, steps])
-        feature = self.rssm.feature({k: v[:, 1:] for k, v in states.items()})  # [N, H, F]
+        feature = self.rssm.feature(states)[:, 1:]  # [N, H, F], the start left out
         # A rollout is compared with the recording only until the recording's next episode.
         valid = (batch["is_first"][rows, steps].int().cumsum(1) == 0).float()
         nll = (gaussian_nll(self.decoder(feature), batch["state"][rows, steps])
