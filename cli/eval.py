@@ -13,7 +13,15 @@ from rich.table import Table
 
 from twist_cli.common import out, parse_list, run_app
 from twist_data.errors import ConfigError
-from twist_models.evaluation import EvalConfig, ImageAgent, StateAgent, load_agent, run_evaluation
+from twist_data.tasks import DEFAULT_ACTION_REPEAT
+from twist_models.evaluation import (
+    EvalConfig,
+    ImageAgent,
+    StateAgent,
+    agents_setting,
+    load_agent,
+    run_evaluation,
+)
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
 
@@ -48,14 +56,19 @@ def main(
     out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("eval"),
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
     max_steps: Annotated[int | None, typer.Option(help="Agent steps per episode.")] = None,
+    action_repeat: Annotated[int | None, typer.Option(
+        help="Simulator steps per agent step [the agents' own; 2 if none says].")] = None,
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
     agents = parse_agents(agent, device)
     if task is None:
-        task = next((a.task for a in agents.values() if a.task), None)
+        task = agents_setting(agents, "task")
         if task is None:
             raise ConfigError("no agent names its task; pass --task")
+    if action_repeat is None:
+        action_repeat = agents_setting(agents, "action_repeat") or DEFAULT_ACTION_REPEAT
     config = EvalConfig(task=task, dr=dr, episodes=episodes, max_steps=max_steps,
+                        action_repeat=action_repeat,
                         backgrounds=None if backgrounds is None else str(backgrounds))
     seed_list = parse_list(seeds, int, "--seeds")
     summary = run_evaluation(agents, config, seed_list, out_dir, video, device)

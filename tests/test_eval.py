@@ -20,6 +20,7 @@ from twist_models.evaluation import (
     EvalConfig,
     EvalError,
     ScriptedAgent,
+    agents_setting,
     evaluate,
     load_agent,
     run_evaluation,
@@ -97,13 +98,17 @@ def agents(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     teacher = Teacher(teacher_preset("tiny", 5, 1))
     teacher_path = save_teacher(root / "teacher.pt", teacher,
                                 extra={"collect": {"task": "cartpole-balance"}})
+    repeat4 = save_teacher(root / "teacher-repeat4.pt", teacher,
+                           extra={"collect": {"task": "cartpole-balance", "action_repeat": 4}})
     from twist_models.student import Student
 
     student = Student(student_preset("tiny", teacher.config))
-    bundle = Agent.from_models(student, teacher, {"task": "cartpole-balance", "image_size": 64})
+    bundle = Agent.from_models(student, teacher, {"task": "cartpole-balance", "image_size": 64,
+                                                  "action_repeat": 2})
     other = Agent(AgentConfig(student=student.config,
                               actor_critic=teacher.config.actor_critic), {"task": "cup-catch"})
-    return {"teacher": teacher_path, "agent": bundle.save(root / "agent.pt"),
+    return {"teacher": teacher_path, "teacher-repeat4": repeat4,
+            "agent": bundle.save(root / "agent.pt"),
             "other": other.save(root / "other.pt")}
 
 
@@ -143,3 +148,20 @@ def test_bad_inputs_are_refused(gl, agents, tmp_path) -> None:
         result = cli(*args)
         assert result.returncode == 2, (args, result.stderr)
         assert message in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+def test_agents_act_at_the_action_repeat_they_were_trained_at(gl, agents, tmp_path) -> None:
+    oracle = load_agent(agents["teacher-repeat4"])
+    assert oracle.action_repeat == 4
+    with pytest.raises(EvalError, match="trained at action repeat 4 but the evaluation uses 2"):
+        evaluate(oracle, EvalConfig(episodes=1, max_steps=2))
+    with pytest.raises(EvalError, match="different action_repeat"):
+        agents_setting({"oracle": oracle, "student": load_agent(agents["agent"])},
+                       "action_repeat")
+    # The CLI takes the agent's repeat: a whole episode of the task's 1,000 frames is 250
+    # agent steps at repeat 4 (500 at the default 2).
+    result = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent",
+                             str(agents["teacher-repeat4"]), "--episodes", "1", "--out",
+                             str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert pd.read_csv(tmp_path / "episodes.csv")["steps"].tolist() == [250]

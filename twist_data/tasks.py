@@ -51,6 +51,8 @@ TASKS: dict[str, TaskSpec] = {
 }
 
 DEFAULT_TASK = "cartpole-balance"
+#: Simulator steps per agent step of DreamerV2 and TWIST on every DMC task.
+DEFAULT_ACTION_REPEAT = 2
 
 
 def _full_physics() -> int:
@@ -120,7 +122,7 @@ class Dynamics:
 class TaskEnv:
     """One dm_control task with action repeat, privileged state and restorable physics state."""
 
-    def __init__(self, task: str = DEFAULT_TASK, action_repeat: int = 2, seed: int = 0,
+    def __init__(self, task: str = DEFAULT_TASK, action_repeat: int = DEFAULT_ACTION_REPEAT, seed: int = 0,
                  max_steps: int | None = None) -> None:
         """``max_steps`` ends episodes after that many agent steps (a time limit shorter than
         the task's 1000 simulator steps, for tests and quick demos)."""

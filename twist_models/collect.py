@@ -51,7 +51,7 @@ from twist_data.render import DRRenderer, FrameRenderer
 from twist_data.render_process import RenderProcess
 from twist_data.rollout import Policy, random_policy, record_episode, simulated_spec
 from twist_data.sampler import SamplerConfig, WindowSampler
-from twist_data.tasks import DEFAULT_TASK, Dynamics, Step, TaskEnv, task_spec
+from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Dynamics, Step, TaskEnv, task_spec
 from twist_data.writer import ShardWriter, shard_path
 from twist_models.config import (
     PRESETS,
@@ -102,7 +102,7 @@ class CollectConfig:
     """DR preset of the renders (``twist-data`` lists them)."""
     backgrounds: str | None = None
     """Folder of background images/videos replacing the procedural bank; None: procedural."""
-    action_repeat: int = 2
+    action_repeat: int = DEFAULT_ACTION_REPEAT
     """Simulator steps per agent step (DreamerV2 DMC: 2)."""
     max_steps: int | None = None
     """Agent steps per episode; None: the task's own limit (1000 frames)."""

@@ -30,7 +30,7 @@ from twist_data.errors import ConfigError, TwistError
 from twist_data.export import episode_strip, write_video
 from twist_data.randomisation import DR_PRESETS, DRConfig, derived_seed, dr_preset
 from twist_data.render import DRRenderer
-from twist_data.tasks import DEFAULT_TASK, Step, TaskEnv, task_spec
+from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Step, TaskEnv, task_spec
 from twist_models.agent import Agent, AgentState
 from twist_models.checkpoint import read_checkpoint
 from twist_models.collect import teacher_policy
@@ -59,8 +59,9 @@ class EvalConfig:
     """Episodes per seed (the paper: 100)."""
     image_size: int = 64
     """Rendered view side in pixels (the student's input size)."""
-    action_repeat: int = 2
-    """Simulator steps per agent step."""
+    action_repeat: int = DEFAULT_ACTION_REPEAT
+    """Simulator steps per agent step (the agents' own: :func:`check_compatible` refuses
+    others)."""
     max_steps: int | None = None
     """Agent steps per episode; None: the task's limit."""
 
@@ -81,6 +82,8 @@ class EvalAgent(Protocol):
     """What :func:`evaluate` drives."""
 
     uses_images: bool
+    action_repeat: int | None
+    """Simulator steps per agent step it was trained at (None: any)."""
 
     def reset(self) -> None: ...
 
@@ -92,11 +95,13 @@ class StateAgent:
 
     uses_images = False
 
-    def __init__(self, teacher: Teacher, task: str | None, device: str = "cpu") -> None:
+    def __init__(self, teacher: Teacher, task: str | None, device: str = "cpu",
+                 action_repeat: int | None = None) -> None:
         self.teacher = teacher.to_device(device).eval()
         self.action_dim = teacher.config.world_model.action_dim
         self.device = device
         self.task = task
+        self.action_repeat = action_repeat
         self.reset()
 
     def reset(self) -> None:
@@ -115,6 +120,7 @@ class ImageAgent:
         self.agent = agent
         self.task = self.agent.info.get("task")
         self.image_size = self.agent.info.get("image_size")
+        self.action_repeat = self.agent.info.get("action_repeat")
         self._state: AgentState | None = None
 
     def reset(self) -> None:
@@ -130,8 +136,9 @@ class ScriptedAgent:
 
     uses_images = False
 
-    def __init__(self, policy: Callable[[Step], np.ndarray], task: str | None = None) -> None:
-        self.policy, self.task = policy, task
+    def __init__(self, policy: Callable[[Step], np.ndarray], task: str | None = None,
+                 action_repeat: int | None = None) -> None:
+        self.policy, self.task, self.action_repeat = policy, task, action_repeat
 
     def reset(self) -> None:
         pass
@@ -144,8 +151,9 @@ def load_agent(path: str | os.PathLike[str], device: str = "cpu") -> StateAgent 
     """A teacher checkpoint becomes the state oracle, an agent bundle the image agent."""
     checkpoint = read_checkpoint(path)
     if checkpoint.kind == "teacher":
-        task = (checkpoint.extra.get("collect") or {}).get("task")
-        return StateAgent(teacher_from_checkpoint(checkpoint, source=str(path)), task, device)
+        collect = checkpoint.extra.get("collect") or {}
+        return StateAgent(teacher_from_checkpoint(checkpoint, source=str(path)),
+                          collect.get("task"), device, collect.get("action_repeat"))
     if checkpoint.kind == "agent":
         return ImageAgent(Agent.from_checkpoint(checkpoint, device))
     kind = checkpoint.kind
@@ -154,7 +162,8 @@ def load_agent(path: str | os.PathLike[str], device: str = "cpu") -> StateAgent 
 
 
 def check_compatible(agent: EvalAgent, config: EvalConfig, name: str = "the agent") -> None:
-    """Refuse an agent trained for another task or image size than the evaluation's."""
+    """Refuse an agent trained for another task, image size or action repeat than the
+    evaluation's (a policy trained at repeat 4 acting every 2 frames is another controller)."""
     task = getattr(agent, "task", None)
     if task is not None and task != config.task:
         raise EvalError(f"{name} was trained on {task!r} but the evaluation task is "
@@ -163,6 +172,25 @@ def check_compatible(agent: EvalAgent, config: EvalConfig, name: str = "the agen
     if agent.uses_images and size is not None and size != config.image_size:
         raise EvalError(f"{name} reads {size}px images but the evaluation renders "
                         f"{config.image_size}px")
+    repeat = getattr(agent, "action_repeat", None)
+    if repeat is not None and repeat != config.action_repeat:
+        raise EvalError(f"{name} was trained at action repeat {repeat} but the evaluation "
+                        f"uses {config.action_repeat}")
+
+
+def agents_setting(agents: Mapping[str, EvalAgent], setting: str) -> Any:
+    """The value of ``setting`` (``task``, ``action_repeat``) that the agents were trained
+    with (None if none says); agents that disagree raise EvalError naming two of them."""
+    known = [(name, getattr(a, setting, None)) for name, a in agents.items()]
+    known = [(name, value) for name, value in known if value is not None]
+    if not known:
+        return None
+    first, value = known[0]
+    for name, other in known[1:]:
+        if other != value:
+            raise EvalError(f"agents {first!r} and {name!r} were trained with different "
+                            f"{setting} ({value!r} and {other!r}); evaluate them separately")
+    return value
 
 
 @dataclass(frozen=True)

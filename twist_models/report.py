@@ -34,7 +34,13 @@ from twist_data.randomisation import DR_PRESETS, dr_preset
 from twist_data.rerender import rerender_dataset
 from twist_data.tasks import task_spec
 from twist_models.baselines import BaselineConfig, train_baseline
-from twist_models.collect import COLLECT_PRESETS, collect, collect_preset, run_dir
+from twist_models.collect import (
+    COLLECT_PRESETS,
+    CollectConfig,
+    collect,
+    collect_preset,
+    run_dir,
+)
 from twist_models.config import require_positive
 from twist_models.curves import figure
 from twist_models.distill import DISTIL_PRESETS, distil, distil_preset
@@ -148,7 +154,8 @@ class _Pipeline:
             self._announce("evaluating")
             c = self.config
             eval_config = EvalConfig(task=self.task, dr=c.eval_dr, episodes=c.eval_episodes,
-                                     max_steps=c.eval_max_steps)
+                                     max_steps=c.eval_max_steps,
+                                     action_repeat=self._collect_config().action_repeat)
             run_evaluation(agents, eval_config, [self.seed], eval_dir, device=self.device)
 
     def _announce(self, stage: str) -> None:
@@ -160,9 +167,12 @@ class _Pipeline:
         if (run_dir(self.dataset, "collect-000") / FINAL_TEACHER).exists():
             return
         self._announce("collecting D and training the teacher")
-        config = collect_preset(self.config.preset, task=self.task, seed=self.seed,
-                                frames=self.config.frames)
-        collect(self.dataset, config, resume=self.dataset.exists(), device=self.device)
+        collect(self.dataset, self._collect_config(), resume=self.dataset.exists(),
+                device=self.device)
+
+    def _collect_config(self) -> CollectConfig:
+        return collect_preset(self.config.preset, task=self.task, seed=self.seed,
+                              frames=self.config.frames)
 
     def _train(self, name: str) -> Path:
         folder = self.root / name
