@@ -10,9 +10,21 @@ import torch
 from twist_data.sampler import SamplerConfig, WindowSampler
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
-from twist_models.baselines import KEYS, BaselineConfig, BaselineError, train_baseline
+from twist_models.baselines import (
+    KEYS,
+    BaselineConfig,
+    BaselineError,
+    behaviour_config,
+    train_baseline,
+)
 from twist_models.checkpoint import read_checkpoint
-from twist_models.config import DreamerConfig, from_json
+from twist_models.config import (
+    ActorCriticConfig,
+    DreamerConfig,
+    MLPConfig,
+    from_json,
+    to_json,
+)
 from twist_models.teacher import Dreamer
 
 
@@ -67,3 +79,15 @@ def test_baseline_refuses_to_overwrite_a_run(dataset, tmp_path) -> None:
                              BaselineConfig(model="tiny", steps=4, batch_size=2, length=8,
                                             imag_starts=4, holdout_every=4), resume=True)
     assert resumed["updates"] == 4
+
+
+def test_baseline_learns_behaviour_with_the_teachers_settings_and_its_own_sizes() -> None:
+    preset = ActorCriticConfig(actor=MLPConfig(layers=2, units=32), critic=MLPConfig(2, 32))
+    teacher = ActorCriticConfig(discount=0.98, actor_lr=1e-3, critic_head="twohot",
+                                return_norm=True, actor=MLPConfig(4, 400))
+    chosen = behaviour_config({"teacher": {"actor_critic": to_json(teacher)}}, preset)
+    assert (chosen.discount, chosen.actor_lr, chosen.critic_head, chosen.return_norm) == \
+        (0.98, 1e-3, "twohot", True)
+    assert (chosen.actor, chosen.critic) == (preset.actor, preset.critic)
+    # A dataset that records no teacher (synthetic, or written by hand) keeps the preset.
+    assert behaviour_config({}, preset) == preset

@@ -187,9 +187,9 @@ def test_behaviour_overrides_reach_the_teacher_config() -> None:
     assert (default.explore_noise, default.actor_critic.entropy) == (0.0, 1e-4)
     assert config.world_model == default.world_model
     # DreamerV2's train ratio: nothing before prefill, then pretrain + 1 per train_every steps.
-    quick = collect_preset("quick")
-    assert quick.updates_due(quick.prefill_frames - 1) == 0
-    assert quick.updates_due(quick.prefill_frames + 10 * quick.action_repeat * 5) == 110
+    paper = collect_preset("paper")
+    assert paper.updates_due(paper.prefill_frames - 1) == 0
+    assert paper.updates_due(paper.prefill_frames + 10 * paper.action_repeat * 5) == 110
 
 
 def test_world_model_warms_up_alone_before_behaviour_learning(tmp_path: Path) -> None:

@@ -36,9 +36,11 @@ from twist_models.agent import Agent
 from twist_models.checkpoint import read_checkpoint, restore, save_checkpoint
 from twist_models.config import (
     PRESETS,
+    ActorCriticConfig,
     AgentConfig,
     DreamerConfig,
     StudentConfig,
+    from_json,
     image_dreamer_preset,
     require_non_negative,
     require_positive,
@@ -109,6 +111,19 @@ class Progress:
     model_loss: float
 
 
+def behaviour_config(extra: dict[str, Any], preset: ActorCriticConfig) -> ActorCriticConfig:
+    """``preset`` with the behaviour-learning settings of the teacher that collected D
+    (``extra["teacher"]``, written by twist-collect) when D records them: a baseline learns
+    behaviour as the teacher did (discount for D's action repeat, learning rates, critic head),
+    so the comparison with TWIST differs in how the world model is learned, not in how its
+    actor is trained. Network sizes stay the preset's."""
+    recorded = (extra.get("teacher") or {}).get("actor_critic")
+    if recorded is None:
+        return preset
+    return dataclasses.replace(from_json(ActorCriticConfig, recorded), actor=preset.actor,
+                               critic=preset.critic)
+
+
 def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
                    config: BaselineConfig, resume: bool = False, device: str = "cpu",
                    on_progress: Callable[[Progress], None] | None = None) -> dict[str, Any]:
@@ -120,8 +135,9 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
     spec = open_dataset(dataset).spec
     dreamer_config = image_dreamer_preset(config.model, spec.state_dim, spec.action_dim,
                                           spec.image_height, recon=KINDS[config.kind])
+    behaviour = behaviour_config(spec.extra, dreamer_config.actor_critic)
     dreamer_config = dataclasses.replace(dreamer_config, actor_critic=dataclasses.replace(
-        dreamer_config.actor_critic, imag_starts=config.imag_starts))
+        behaviour, imag_starts=config.imag_starts))
     prepare_output(out, BaselineError)
     stored, latest = out / "config.json", out / "latest.pt"
     if stored.exists() and not resume:
