@@ -204,8 +204,8 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # 4 frames moves the state 2x more per model step and halves the per-frame cost; gamma
     # 0.98 per agent step keeps DreamerV2's horizon in seconds; 2,000 world-model updates on
     # 10K random frames come before behaviour learning; a 12x faster actor (1e-3) and a
-    # DreamerV3 critic (two-hot, normalised returns) fit the ~1,500 behaviour updates that
-    # 30 minutes allow; 15-step open-loop overshooting trains what imagination uses.
+    # DreamerV3 critic (two-hot, normalised returns) fit the ~1,100 behaviour updates that
+    # the main job's 22 minutes allow; 15-step open-loop overshooting trains what imagination uses.
     "quick": CollectConfig(model="quick", frames=28_000, eval_every=4_000, eval_episodes=3,
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,
                            pretrain_updates=2_000, behaviour_from=2_000, train_every=4,
