@@ -221,17 +221,22 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
             step = env.reset(seed=episode_seed, dynamics=sampler.begin_episode(episode_seed))
             agent.reset()
             total, steps = 0.0, 0
-            while True:
-                image = renderer.render(step.physics, sampler.sample())[0] if render else None
-                if record is not None:
-                    record(i, image)
-                if step.is_last:
-                    break
-                with torch.no_grad():
-                    action = np.asarray(agent.act(step, image), np.float32)
-                step = env.step(np.clip(action, -1.0, 1.0))
-                total += step.reward
-                steps += 1
+            # The agents sample their latents: seeding torch per episode (without touching
+            # the caller's stream) makes a re-run score exactly the same.
+            with torch.random.fork_rng(devices=range(torch.cuda.device_count())):
+                torch.manual_seed(episode_seed)
+                while True:
+                    image = (renderer.render(step.physics, sampler.sample())[0] if render
+                             else None)
+                    if record is not None:
+                        record(i, image)
+                    if step.is_last:
+                        break
+                    with torch.no_grad():
+                        action = np.asarray(agent.act(step, image), np.float32)
+                    step = env.step(np.clip(action, -1.0, 1.0))
+                    total += step.reward
+                    steps += 1
             result = EpisodeResult(seed, i, episode_seed, total, steps)
             results.append(result)
             if on_episode is not None:
