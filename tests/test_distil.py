@@ -145,6 +145,7 @@ def test_short_run_improves_agreement_and_writes_an_agent(distil_inputs, tmp_pat
     assert summary.updates == 40
     assert last["h_mse"] < 0.7 * first["h_mse"]
     assert last["imagined_h_mse"] < 0.7 * first["imagined_h_mse"]
+    assert first["h_explained"] < last["h_explained"] <= 1.0
     heldout = pd.read_csv(tmp_path / "run" / "heldout.csv")
     assert list(heldout["updates"]) == [0, 20, 40]
     metrics = pd.read_csv(tmp_path / "run" / "metrics.csv")
