@@ -28,7 +28,7 @@ from twist_data.randomisation import (
 )
 from twist_data.render import DRRenderer, FrameRenderer
 from twist_data.schema import DatasetSpec, Episode, EpisodeInfo
-from twist_data.tasks import Step, TaskEnv
+from twist_data.tasks import DEFAULT_ACTION_REPEAT, Step, TaskEnv
 from twist_data.writer import ShardWriter
 
 log = logging.getLogger(__name__)
@@ -135,7 +135,8 @@ def record_episode(env: TaskEnv, renderer: FrameRenderer, sampler: DRSampler, po
 
 
 def record_dataset(out: str | os.PathLike[str], task: str, episodes: int, config: DRConfig,
-                   views: int = 2, image_size: int = 64, action_repeat: int = 2,
+                   views: int = 2, image_size: int = 64,
+                   action_repeat: int = DEFAULT_ACTION_REPEAT,
                    max_steps: int | None = None, seed: int = 0, shard: str = "random-000",
                    on_episode: Callable[[int, int], None] | None = None) -> Path:
     """Record ``episodes`` random-policy episodes of ``task`` into a new shard of ``out``.

@@ -122,8 +122,8 @@ class Dynamics:
 class TaskEnv:
     """One dm_control task with action repeat, privileged state and restorable physics state."""
 
-    def __init__(self, task: str = DEFAULT_TASK, action_repeat: int = DEFAULT_ACTION_REPEAT, seed: int = 0,
-                 max_steps: int | None = None) -> None:
+    def __init__(self, task: str = DEFAULT_TASK, action_repeat: int = DEFAULT_ACTION_REPEAT,
+                 seed: int = 0, max_steps: int | None = None) -> None:
         """``max_steps`` ends episodes after that many agent steps (a time limit shorter than
         the task's 1000 simulator steps, for tests and quick demos)."""
         if action_repeat < 1:
