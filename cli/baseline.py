@@ -9,11 +9,11 @@ from typing import Annotated
 
 import typer
 
-from twist_cli.common import out, progress_bar, run_app
+from twist_cli.common import new_app, out, progress_bar, run_app
 from twist_models.baselines import KINDS, BaselineConfig, train_baseline
 from twist_models.baselines import Progress as BaselineProgress
 
-app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+app = new_app()
 
 
 @app.command()

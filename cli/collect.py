@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from twist_cli.common import out, parse_settings, progress_bar, run_app
+from twist_cli.common import new_app, out, parse_settings, progress_bar, run_app
 from twist_data.tasks import DEFAULT_TASK
 from twist_models.collect import (
     COLLECT_PRESETS,
@@ -22,7 +22,7 @@ from twist_models.collect import (
 )
 from twist_models.collect import Progress as CollectProgress
 
-app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+app = new_app()
 
 
 def shard_name(shard: str) -> str:

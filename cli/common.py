@@ -23,6 +23,13 @@ out = Console()
 err = Console(stderr=True)
 
 
+def new_app(**settings: Any) -> typer.Typer:
+    """A Typer app with twist's settings. Help is plain text: Rich markup would swallow the
+    ``[default]`` notes the options' help strings carry (``[train]``, ``[the preset's]``)."""
+    return typer.Typer(add_completion=False, pretty_exceptions_enable=False,
+                       rich_markup_mode=None, **settings)
+
+
 def run_app(app: typer.Typer, log_level: int = logging.WARNING) -> None:
     """Run a Typer app; known errors become one ``error:`` line on stderr and exit code 2.
     ``log_level`` applies to twist's own loggers; other libraries log warnings only."""

@@ -13,7 +13,7 @@ import typer
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from twist_cli.common import err, out, run_app
+from twist_cli.common import err, new_app, out, run_app
 from twist_data.errors import TwistError
 from twist_data.export import export_hdf5, export_video
 from twist_data.randomisation import DR_PRESETS, dr_preset
@@ -22,8 +22,8 @@ from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import verify_dataset
 
-app = typer.Typer(help="Inspect, verify, export, re-render and synthesise TWIST matching datasets.",
-                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+app = new_app(help="Inspect, verify, export, re-render and synthesise TWIST matching datasets.",
+              no_args_is_help=True)
 
 DatasetArg = Annotated[Path, typer.Argument(help="Dataset folder (or one shard folder).")]
 

@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from twist_cli.common import out, progress_bar, run_app
+from twist_cli.common import new_app, out, progress_bar, run_app
 from twist_models.distill import (
     DISTIL_PRESETS,
     distil,
@@ -20,7 +20,7 @@ from twist_models.distill import (
 )
 from twist_models.distill import Progress as DistilProgress
 
-app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+app = new_app()
 
 
 @app.command()

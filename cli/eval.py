@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twist_cli.common import out, parse_list, run_app
+from twist_cli.common import new_app, out, parse_list, run_app
 from twist_data.errors import ConfigError
 from twist_data.tasks import DEFAULT_ACTION_REPEAT
 from twist_models.evaluation import (
@@ -23,7 +23,7 @@ from twist_models.evaluation import (
     run_evaluation,
 )
 
-app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+app = new_app()
 
 
 def parse_agents(specs: list[str], device: str) -> dict[str, StateAgent | ImageAgent]:

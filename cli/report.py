@@ -9,10 +9,10 @@ from typing import Annotated
 
 import typer
 
-from twist_cli.common import out, parse_list, run_app
+from twist_cli.common import new_app, out, parse_list, run_app
 from twist_models.report import AGENTS, ReportConfig, build_report, run_reproduction
 
-app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+app = new_app()
 
 
 @app.command()

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -66,3 +69,13 @@ def test_hdf5_export_holds_every_episode(small_dataset: Path, tmp_path: Path) ->
             np.testing.assert_array_equal(f["data/image"][a:b], ep.image)
             np.testing.assert_array_equal(f["data/dr/agent_rgb"][a:b], ep.dr["agent_rgb"])
             np.testing.assert_array_equal(f["data/reward"][a:b], ep.reward)
+
+
+def test_help_keeps_the_bracketed_defaults() -> None:
+    # Rich markup read "[random per step]" as a style tag and dropped it from the help.
+    for module, note in (("twist_cli.baseline", "[random per step]"),
+                         ("twist_cli.collect", "[train]"),
+                         ("twist_cli.eval", "[the first agent's]")):
+        result = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True,
+                                text=True, env={**os.environ, "COLUMNS": "200"})
+        assert result.returncode == 0 and note in result.stdout, (module, result.stdout)
