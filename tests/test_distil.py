@@ -31,7 +31,7 @@ from twist_models.distill import (
     load_student,
 )
 from twist_models.losses import distillation_loss, imagined_distillation_loss
-from twist_models.student import Student
+from twist_models.student import Student, copy_teacher_dynamics
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 
 # Images are deterministic drawings of the state (plus randomised backgrounds), so the
@@ -136,10 +136,45 @@ def test_shared_draws_give_equal_samples_to_equal_distributions() -> None:
     assert not torch.equal(a["stoch"], c["stoch"])
 
 
+def test_copied_dynamics_imagine_like_the_teacher() -> None:
+    """After copy_teacher_dynamics the student's prior is the teacher's transition function;
+    its posterior differs from the teacher's only through the embedding it reads."""
+    objective, batch = _objective()
+    teacher, student = objective.teacher.world_model.rssm, objective.student
+    start = {k: v[:, 3] for k, v in teacher.observe(
+        objective.teacher.world_model.embed(batch["state"]), batch["action"],
+        batch["is_first"])[0].items()}
+    actions = torch.rand(2, 5, 1) * 2 - 1
+    draws = torch.rand(2, 5, teacher.config.stoch, 1)
+    scratch = latent_agreement(student, objective.teacher, batch, objective.config)
+    with torch.no_grad():
+        expected, _ = teacher.imagine(start, 5, actions=actions, uniform=draws)
+        before, _ = student.rssm.imagine(start, 5, actions=actions, uniform=draws)
+        copy_teacher_dynamics(student, teacher)
+        after, _ = student.rssm.imagine(start, 5, actions=actions, uniform=draws)
+        # With no embedding both posteriors see only h: the copied columns make them equal.
+        t_post = teacher.post_step(start, actions[:, 0], torch.zeros(2, teacher.obs_out[0]
+                                   .in_features - teacher.config.deter), uniform=draws[:, 0])
+        s_post = student.rssm.post_step(start, actions[:, 0],
+                                        torch.zeros(2, student.encoder.out_dim),
+                                        uniform=draws[:, 0])
+    assert not torch.allclose(before["deter"], expected["deter"], atol=1e-3)
+    copied = latent_agreement(student, objective.teacher, batch, objective.config)
+    assert copied["h_mse"] < 0.5 * scratch["h_mse"]
+    assert copied["imagined_h_mse"] < 0.5 * scratch["imagined_h_mse"]
+    for key in ("deter", "logits", "stoch"):
+        torch.testing.assert_close(after[key], expected[key])
+        torch.testing.assert_close(s_post[key], t_post[key])
+    # The copied weights still train (they are copies, not the teacher's tensors).
+    assert all(p.requires_grad for p in student.rssm.parameters())
+    assert not {id(p) for p in student.parameters()} & {id(p) for p in teacher.parameters()}
+
+
 def test_short_run_improves_agreement_and_writes_an_agent(distil_inputs, tmp_path) -> None:
     dataset, teacher = distil_inputs
+    # From scratch, as the paper: copied dynamics would start it close to the target.
     config = distil_preset("tiny", steps=40, eval_every=20, checkpoint_every=20,
-                           snapshot_every=40)
+                           snapshot_every=40, copy_dynamics=False)
     summary = distil(dataset, tmp_path / "run", config, teacher=teacher)
     first, last = summary.heldout_first, summary.heldout_last
     assert summary.updates == 40

@@ -71,7 +71,7 @@ from twist_models.runlog import (
     refuse_resume,
     resume_conflicts,
 )
-from twist_models.student import Student
+from twist_models.student import Student, copy_teacher_dynamics
 from twist_models.teacher import Teacher, find_teacher, load_teacher
 
 log = logging.getLogger(__name__)
@@ -111,6 +111,8 @@ class DistilConfig:
     """Posterior states that start Eq. 4's rollouts; 0 = every step of every window."""
     shared_draws: bool = True
     """Teacher and student sample their latents from the same uniform draws."""
+    copy_dynamics: bool = True
+    """Start the student's RSSM from the teacher's (False: from scratch, as the paper)."""
     h_weight: float = 1.0
     """Weight of ||h_teacher - h_student||^2 on data (Eq. 3)."""
     prior_weight: float = 1.0
@@ -420,6 +422,8 @@ class _Run:
             log.info("resumed the student at update %d from %s", self.updates, latest)
         else:
             self.updates, self.seconds, self.heldout_first = 0, 0.0, {}
+            if config.copy_dynamics:
+                copy_teacher_dynamics(self.student, self.teacher.world_model.rssm)
             # Ranks start from one student but draw their own latent samples and noise.
             torch.manual_seed(derived_seed(config.seed, 5, rank))
         self.student.to(device)

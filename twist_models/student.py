@@ -26,3 +26,23 @@ class Student(nn.Module):
         """Filter windows of images: image uint8 [B, T, H, W, 3], action [B, T, A],
         is_first [B, T] -> (posterior, prior) states {k: [B, T, ...]}."""
         return self.rssm.observe(self.encoder(image), action, is_first, uniform=uniform)
+
+
+@torch.no_grad()
+def copy_teacher_dynamics(student: Student, teacher_rssm: RSSM) -> None:
+    """Start the student's RSSM from the teacher's: the GRU and its input layer, the prior
+    head, and the posterior head except the columns that read the observation embedding (the
+    student's embedding is a CNN's, not the state MLP's, so those stay freshly initialised).
+
+    With the teacher's transition function the student's h and prior already agree with the
+    teacher's wherever their z samples do, so Eq. 3 and 4 are left to teach mainly the image ->
+    posterior mapping; the copied weights still train."""
+    if student.rssm.config != teacher_rssm.config:
+        raise ValueError("the student's RSSM sizes differ from the teacher's")
+    for name in ("img_in", "gru", "img_out"):
+        getattr(student.rssm, name).load_state_dict(getattr(teacher_rssm, name).state_dict())
+    deter = teacher_rssm.config.deter
+    student_in, teacher_in = student.rssm.obs_out[0], teacher_rssm.obs_out[0]
+    student_in.weight[:, :deter].copy_(teacher_in.weight[:, :deter])
+    student_in.bias.copy_(teacher_in.bias)
+    student.rssm.obs_out[2].load_state_dict(teacher_rssm.obs_out[2].state_dict())
