@@ -40,6 +40,9 @@ def main(
         help="Std of the noise on the teacher's imagined actions [0.3].")] = None,
     no_imagined: Annotated[bool, typer.Option(
         "--no-imagined", help="Ablation: train without imagined distillation (Eq. 4).")] = False,
+    scratch_dynamics: Annotated[bool, typer.Option(
+        "--scratch-dynamics", help="Start the student's RSSM from random weights, as the "
+                                   "paper [from the teacher's].")] = False,
     view: Annotated[int | None, typer.Option(
         help="Use this camera view only [a random view per step].")] = None,
     workers: Annotated[int | None, typer.Option(help="Data-loading processes [1].")] = None,
@@ -56,6 +59,7 @@ def main(
     given = {k: v for k, v in {
         "steps": steps, "batch_size": batch, "length": length, "horizon": horizon,
         "action_noise": action_noise, "imagined": False if no_imagined else None,
+        "copy_dynamics": False if scratch_dynamics else None,
         "view": view, "workers": workers, "seed": seed}.items() if v is not None}
     if resume and (folder / "config.json").exists():
         config = dataclasses.replace(stored_config(folder), **given)

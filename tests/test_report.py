@@ -93,6 +93,8 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
         return json.loads((root / name / "config.json").read_text())
 
     assert stored("twist")["distil"]["imagined"] and stored("twist")["distil"]["seed"] == 3
+    assert stored("twist")["distil"]["copy_dynamics"]
+    assert not stored("twist-scratch")["distil"]["copy_dynamics"]
     assert not stored("twist-no-imagined")["distil"]["imagined"]
     assert stored("twist-no-noise")["distil"]["action_noise"] == 0.0
     student_steps = stored("twist")["distil"]["steps"]

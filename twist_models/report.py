@@ -54,6 +54,7 @@ log = logging.getLogger(__name__)
 AGENTS: dict[str, str] = {
     "oracle": "Oracle (teacher on states)",
     "twist": "TWIST",
+    "twist-scratch": "TWIST, student RSSM from scratch (as the paper)",
     "twist-no-imagined": "TWIST w/o imagined distillation",
     "twist-no-noise": "TWIST w/o action noise",
     "dreamer-dr": "Dreamer w/ DR",
@@ -182,7 +183,8 @@ class _Pipeline:
         self._announce(f"training {AGENTS[name]}")
         resume = (folder / "config.json").exists()
         if name.startswith("twist"):
-            changes = {"twist-no-imagined": {"imagined": False},
+            changes = {"twist-scratch": {"copy_dynamics": False},
+                       "twist-no-imagined": {"imagined": False},
                        "twist-no-noise": {"action_noise": 0.0}}.get(name, {})
             config = dataclasses.replace(self.distil_config, **changes)
             distil(self.dataset, folder, config, resume=resume, device=self.device)
