@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from twist_data.errors import ConfigError
 from twist_models.config import StudentConfig
 from twist_models.networks import ImageEncoder
 from twist_models.rssm import RSSM, State
@@ -38,7 +39,8 @@ def copy_teacher_dynamics(student: Student, teacher_rssm: RSSM) -> None:
     teacher's wherever their z samples do, so Eq. 3 and 4 are left to teach mainly the image ->
     posterior mapping; the copied weights still train."""
     if student.rssm.config != teacher_rssm.config:
-        raise ValueError("the student's RSSM sizes differ from the teacher's")
+        raise ConfigError(f"the student's RSSM sizes {student.rssm.config} differ from the "
+                          f"teacher's {teacher_rssm.config}; its dynamics cannot be copied")
     for name in ("img_in", "gru", "img_out"):
         getattr(student.rssm, name).load_state_dict(getattr(teacher_rssm, name).state_dict())
     deter = teacher_rssm.config.deter
