@@ -1,0 +1,117 @@
+"""Where does a distilled student lose the teacher's behaviour? (issue 7 diagnosis)
+
+The teacher acts on states for ``--episodes`` episodes; the same physics is rendered under
+``--dr`` (DR drawn once per episode) and two filters run in its shadow on the executed actions:
+
+* ``teacher_again``: the same teacher on the same states with its own latent samples -- the
+  baseline measured in the same run: how far two runs of the teacher itself disagree, since
+  its posterior is stochastic;
+* ``student``: the agent bundle's student on the rendered images.
+
+For each: the correlation of the teacher's actor (mode) on that latent with the acting
+teacher's action, the h-MSE to the acting teacher's h (per element, and against the variance
+of the teacher's h over the episode), and the share of latent variables whose sampled class
+differs. For the student also the swaps: the actor on (student h, teacher z) and on
+(teacher h, student z), which tell which half of the latent its error comes from.
+
+Prints one JSON line of means over episodes. ``python benchmarks/latent_probe.py TEACHER
+AGENT [--dr heldout] [--episodes 4]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+
+import numpy as np
+import torch
+
+from twist_data.randomisation import dr_preset
+from twist_data.render import DRRenderer
+from twist_data.tasks import TaskEnv
+from twist_models.agent import Agent, AgentState
+from twist_models.rssm import State
+from twist_models.teacher import load_teacher
+
+
+def correlation(a: list[float], b: list[float]) -> float:
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def differing_classes(a: State, b: State) -> float:
+    return float((a["stoch"].argmax(-1) != b["stoch"].argmax(-1)).float().mean())
+
+
+def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher, agent: Agent
+            ) -> dict[str, float]:
+    sampler = renderer.sampler(seed)
+    step = env.reset(seed=seed, dynamics=sampler.begin_episode(seed))
+    acting = again = None
+    student: AgentState | None = None
+    previous = torch.zeros(1, teacher.config.world_model.action_dim)
+    rows: dict[str, list] = {k: [] for k in (
+        "action", "again_action", "student_action", "student_h_teacher_z",
+        "teacher_h_student_z", "h", "again_h", "student_h", "again_z", "student_z")}
+    actor = teacher.act_on_latent
+    while not step.is_last:
+        state = torch.as_tensor(step.state, dtype=torch.float32)[None]
+        first = torch.tensor([step.is_first])
+        with torch.no_grad():
+            action, acting = teacher.policy(state, acting, previous, first, explore=False)
+            _, again = teacher.policy(state, again, previous, first, explore=False)
+        image = renderer.render(step.physics, sampler.sample())[0]
+        _, student = agent.act(image, student)
+        mine = student.latent
+        with torch.no_grad():
+            rows["again_action"].append(float(actor(again)[0, 0]))
+            rows["student_action"].append(float(actor(mine)[0, 0]))
+            rows["student_h_teacher_z"].append(
+                float(actor({"deter": mine["deter"], "stoch": acting["stoch"]})[0, 0]))
+            rows["teacher_h_student_z"].append(
+                float(actor({"deter": acting["deter"], "stoch": mine["stoch"]})[0, 0]))
+        rows["action"].append(float(action[0, 0]))
+        for key, latent in (("h", acting), ("again_h", again), ("student_h", mine)):
+            rows[key].append(latent["deter"][0].numpy())
+        rows["again_z"].append(differing_classes(acting, again))
+        rows["student_z"].append(differing_classes(acting, mine))
+        # Every filter continues from the action that was executed.
+        student = AgentState(mine, action)
+        previous = action
+        step = env.step(action[0].numpy())
+    h = np.array(rows["h"])
+    variance = float(h.var(0).mean())
+    result = {"h_variance": variance}
+    for name in ("again", "student"):
+        mse = float(((np.array(rows[f"{name}_h"]) - h) ** 2).mean())
+        result.update({f"{name}_action_corr": correlation(rows["action"], rows[f"{name}_action"]),
+                       f"{name}_h_mse": mse, f"{name}_h_explained": 1 - mse / variance,
+                       f"{name}_z_differs": float(np.mean(rows[f"{name}_z"]))})
+    for swap in ("student_h_teacher_z", "teacher_h_student_z"):
+        result[f"{swap}_action_corr"] = correlation(rows["action"], rows[swap])
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("teacher")
+    parser.add_argument("agent")
+    parser.add_argument("--dr", default="heldout")
+    parser.add_argument("--episodes", type=int, default=4)
+    parser.add_argument("--seed", type=int, default=200)
+    args = parser.parse_args()
+    torch.manual_seed(0)
+    teacher = load_teacher(args.teacher)[0].eval()
+    agent = Agent.load(args.agent)
+    task = agent.info["task"]
+    env = TaskEnv(task, action_repeat=agent.info["action_repeat"], seed=args.seed)
+    dr = dataclasses.replace(dr_preset(args.dr), resample="episode")
+    with DRRenderer(task, dr, agent.info["image_size"], views=1) as renderer:
+        runs = [episode(env, renderer, args.seed + i, teacher, agent)
+                for i in range(args.episodes)]
+    means = {k: round(float(np.mean([r[k] for r in runs])), 4) for k in runs[0]}
+    print(json.dumps({"task": task, "dr": args.dr, "episodes": args.episodes, **means}))
+
+
+if __name__ == "__main__":
+    main()
