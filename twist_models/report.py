@@ -293,10 +293,12 @@ def plot_iqm(summary: dict[str, Any], out: str | os.PathLike[str]) -> Path:
         for y, agent in enumerate(agents):
             low, high = iqm[agent]["ci95"]
             ax.plot([low, high], [y, y], color="tab:blue", lw=6, alpha=0.4, solid_capstyle="butt")
-            ax.plot([iqm[agent]["iqm"]], [y], "k|", markersize=14)
+            # A dot as well as the bar: with one run per agent the interval has no width.
+            ax.plot([iqm[agent]["iqm"]], [y], "ko", markersize=4)
         ax.set_yticks(range(len(agents)), [AGENTS[a] for a in agents], fontsize=8)
         ax.axvline(1.0, color="grey", ls="--", lw=0.8)
-        ax.set_xlabel("IQM of oracle-normalised return (95% stratified bootstrap CI)")
+        ax.set_xlim(left=min(0.0, ax.get_xlim()[0]))
+        ax.set_xlabel("IQM of oracle-normalised return\n(bar: 95% stratified bootstrap CI)")
         ax.grid(alpha=0.3, axis="x")
     return Path(out)
 
