@@ -32,7 +32,7 @@ from twist_data.render import DRRenderer
 from twist_data.tasks import TaskEnv
 from twist_models.agent import Agent, AgentState
 from twist_models.rssm import State
-from twist_models.teacher import load_teacher
+from twist_models.teacher import Teacher, load_teacher
 
 
 def correlation(a: list[float], b: list[float]) -> float:
@@ -43,7 +43,7 @@ def differing_classes(a: State, b: State) -> float:
     return float((a["stoch"].argmax(-1) != b["stoch"].argmax(-1)).float().mean())
 
 
-def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher, agent: Agent
+def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, agent: Agent
             ) -> dict[str, float]:
     sampler = renderer.sampler(seed)
     step = env.reset(seed=seed, dynamics=sampler.begin_episode(seed))
