@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.sampler import heldout_episodes
 from twist_models.agent import Agent
 from twist_models.config import PRESETS, CNNConfig
 from twist_models.networks import ImageEncoder
@@ -80,8 +81,7 @@ def main() -> None:
     data = open_dataset(args.dataset)
     states = data.column("state").astype(np.float32)
     target = torch.as_tensor((states - states.mean(0)) / states.std(0).clip(1e-3))
-    episode = np.repeat(np.arange(data.n_episodes), data.episode_lengths)
-    held = episode % args.holdout_every == args.holdout_every - 1
+    held = np.repeat(heldout_episodes(data.n_episodes, args.holdout_every), data.episode_lengths)
     kept = np.ones(held.size, bool)
     if args.within:
         index, low, high = args.within.split(":")

@@ -35,6 +35,12 @@ DEFAULT_KEYS = ("image", "state", "action", "reward", "discount", "is_first", "i
                 "is_terminal")
 
 
+def heldout_episodes(n_episodes: int, every: int) -> np.ndarray:
+    """The held-out split: a boolean mask [n_episodes], True for every ``every``-th episode
+    (global index % every == every - 1), so it stays fixed as a dataset grows."""
+    return np.arange(n_episodes) % every == every - 1
+
+
 @dataclass(frozen=True)
 class SamplerConfig:
     """How windows are drawn and batched."""
@@ -182,7 +188,7 @@ class WindowSampler:
         valid = np.maximum(lengths - cfg.length + 1, 0)
         where = ""
         if cfg.split != "all":
-            held = np.arange(lengths.size) % cfg.holdout_every == cfg.holdout_every - 1
+            held = heldout_episodes(lengths.size, cfg.holdout_every)
             chosen = held if cfg.split == "heldout" else ~held
             valid, lengths = np.where(chosen, valid, 0), lengths[chosen]
             where = f" of the {cfg.split} split ({lengths.size} episodes)"
