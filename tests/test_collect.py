@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from twist_data.errors import UnknownTaskError
 from twist_data.randomisation import derived_seed
@@ -22,13 +23,14 @@ from twist_data.reader import open_dataset
 from twist_data.tasks import Dynamics, TaskEnv
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
+from twist_models.checkpoint import read_checkpoint
 from twist_models.collect import (
     CollectError,
     collect,
     collect_preset,
     shard_seed,
 )
-from twist_models.teacher import Teacher, find_teacher, load_teacher
+from twist_models.teacher import BEST_TEACHER, Teacher, find_teacher, load_teacher
 
 pytestmark = pytest.mark.usefixtures("gl")
 COLLECT = [sys.executable, "-m", "twist_cli.collect"]
@@ -72,6 +74,15 @@ def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> 
     teacher, checkpoint = load_teacher(find_teacher(tmp_path), dataset.spec.state_dim)
     assert checkpoint.counters["frames"] == summary.frames
     assert int(teacher.step) == config.updates_due(summary.frames) == summary.updates
+    # best.pt is the teacher of the first best evaluation in eval.csv: the final teacher's
+    # weights exactly when that evaluation was the last one, older weights otherwise.
+    evals = pd.read_csv(runs / "eval.csv")
+    best_row = evals.loc[evals["return_mean"].idxmax()]
+    best = read_checkpoint(runs / BEST_TEACHER, kind="teacher")
+    assert best.counters["frames"] == best_row["frames"]
+    assert best.extra["eval_return"] == pytest.approx(best_row["return_mean"])
+    same = all(torch.equal(value, checkpoint.weights[key]) for key, value in best.weights.items())
+    assert same == (best_row["frames"] == summary.frames)
 
 
 def test_sigkilled_cli_run_resumes_without_duplicates_or_losses(tmp_path: Path) -> None:

@@ -65,7 +65,7 @@ from twist_models.config import (
 from twist_models.curves import plot_learning_curves
 from twist_models.networks import single_threaded
 from twist_models.runlog import Board, append_csv, prepare_output, refuse_resume, resume_conflicts
-from twist_models.teacher import FINAL_TEACHER, Teacher, load_teacher, save_teacher
+from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teacher, save_teacher
 
 log = logging.getLogger(__name__)
 
@@ -373,6 +373,7 @@ class _Run:
         self.evaluated_at = -1
         self.train_metrics: dict[str, float] = {}
         self.eval_returns: list[float] = []
+        self.best_teacher_return: float | None = None
         self.last_return: float | None = None
         self.board = Board(folder)
         self._load_or_create_teacher(teacher_config)
@@ -396,6 +397,7 @@ class _Run:
             self.evaluated_at = extra["evaluated_at"]
             self.seconds.update(extra.get("seconds", {}))
             self.eval_returns = extra.get("eval_returns", [])
+            self.best_teacher_return = extra.get("best_teacher_return")
             log.info("resumed the teacher at update %d from %s", int(self.teacher.step), latest)
         else:
             torch.manual_seed(self.seed)
@@ -510,6 +512,21 @@ class _Run:
                              f"{c.task}, {c.model} teacher on state, mode action")
         self.seconds["eval"] += time.perf_counter() - tick
         log.info("eval at %d frames: return %.1f", self.frames, self.eval_returns[-1])
+        teacher_acted = self.frames >= c.prefill_frames
+        if teacher_acted and (self.best_teacher_return is None
+                              or row["return_mean"] > self.best_teacher_return):
+            self._save_best(row["return_mean"])
+
+    def _save_best(self, eval_return: float) -> None:
+        """Keep the teacher of the best evaluation so far as ``best.pt``. Its return is saved
+        in the run's state (``latest.pt``), so a resumed run compares against it; an
+        evaluation repeated after a crash may replace it with the repeat's teacher."""
+        tick = time.perf_counter()
+        self.best_teacher_return = eval_return
+        save_teacher(self.folder / BEST_TEACHER, self.teacher,
+                     {"frames": self.frames, "episodes": self.writer.n_episodes},
+                     {"eval_return": eval_return})
+        self.seconds["checkpoint"] += time.perf_counter() - tick
 
     def _evaluation_episode(self, index: int) -> float:
         """Return of one episode of the teacher's mode action on states, nominal dynamics."""
@@ -538,7 +555,8 @@ class _Run:
                  else self.replay_state,
                  "next_eval": self.next_eval, "next_snapshot": self.next_snapshot,
                  "evaluated_at": self.evaluated_at, "seconds": self.seconds,
-                 "eval_returns": self.eval_returns}
+                 "eval_returns": self.eval_returns,
+                 "best_teacher_return": self.best_teacher_return}
         counters = {"frames": self.frames, "episodes": self.writer.n_episodes}
         latest = save_teacher(self.folder / "latest.pt", self.teacher, counters, extra)
         if snapshot:
