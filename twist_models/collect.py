@@ -523,10 +523,12 @@ class _Run:
         evaluation repeated after a crash may replace it with the repeat's teacher."""
         tick = time.perf_counter()
         self.best_teacher_return = eval_return
-        save_teacher(self.folder / BEST_TEACHER, self.teacher,
-                     {"frames": self.frames, "episodes": self.writer.n_episodes},
+        save_teacher(self.folder / BEST_TEACHER, self.teacher, self._counters(),
                      {"eval_return": eval_return})
         self.seconds["checkpoint"] += time.perf_counter() - tick
+
+    def _counters(self) -> dict[str, int]:
+        return {"frames": self.frames, "episodes": self.writer.n_episodes}
 
     def _evaluation_episode(self, index: int) -> float:
         """Return of one episode of the teacher's mode action on states, nominal dynamics."""
@@ -557,7 +559,7 @@ class _Run:
                  "evaluated_at": self.evaluated_at, "seconds": self.seconds,
                  "eval_returns": self.eval_returns,
                  "best_teacher_return": self.best_teacher_return}
-        counters = {"frames": self.frames, "episodes": self.writer.n_episodes}
+        counters = self._counters()
         latest = save_teacher(self.folder / "latest.pt", self.teacher, counters, extra)
         if snapshot:
             save_teacher(self.folder / f"teacher-{self.frames:08d}.pt", self.teacher, counters,
