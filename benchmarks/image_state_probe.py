@@ -15,7 +15,7 @@ component on the held-out episodes (every ``--holdout-every``-th, as ``twist-dis
 
 R² is 1 - MSE / variance per component over the held-out frames (0: no better than the mean).
 ``--within I:LOW:HIGH`` keeps only frames whose state component I lies in [LOW, HIGH], e.g.
-``0:-0.6:0.6`` for cartpole frames with the cart inside the camera's view.
+``0:-0.6:0.6`` for cartpole frames with the cart in the central third of the view.
 Prints one JSON line. ``python benchmarks/image_state_probe.py DATASET [--agent AGENT]
 [--steps 300] [--preset quick] [--within I:LOW:HIGH]``
 """
