@@ -24,6 +24,7 @@ from twist_models.report import (
     aggregate,
     build_report,
     markdown_table,
+    plot_iqm,
     run_reproduction,
 )
 
@@ -65,6 +66,33 @@ def test_aggregate_refuses_a_task_without_oracle() -> None:
         aggregate(_results({("cup-catch", "twist"): [1.0]}))
     with pytest.raises(ReportError, match="no evaluation results"):
         aggregate(pd.DataFrame(columns=RESULT_COLUMNS))
+
+
+def test_a_task_whose_oracle_scored_zero_keeps_raw_scores_but_leaves_the_iqm(
+        tmp_path: Path) -> None:
+    results = _results({
+        ("cartpole-balance", "oracle"): [800.0, 1000.0],  # mean 900
+        ("cartpole-balance", "twist"): [450.0, 900.0],     # normalised 0.5, 1.0
+        ("cup-catch", "oracle"): [0.0, 0.0],               # a teacher that never caught
+        ("cup-catch", "twist"): [20.0, 40.0],
+    })
+    summary = aggregate(results)
+    assert summary["unnormalised_tasks"] == ["cup-catch"]
+    assert summary["per_task"]["cup-catch"]["twist"]["mean"] == pytest.approx(30.0)
+    twist = summary["normalised_iqm"]["twist"]
+    # Only cartpole's two runs: the IQM of two values trims nothing, mean(0.5, 1.0).
+    assert twist["runs"] == 2 and twist["tasks"] == 1
+    assert twist["iqm"] == pytest.approx(0.75)
+    assert np.isfinite(twist["ci95"]).all()
+    table = markdown_table(summary)
+    assert "| cup-catch (ours) | 0.0 ± 0.0 | 30.0 ± 10.0 |" in table
+    assert "oracle's mean score is not positive: cup-catch." in table
+
+    # With no task normalisable there is no IQM row, and the plot still gets written.
+    only_cup = aggregate(results[results["task"] == "cup-catch"])
+    assert only_cup["normalised_iqm"] == {}
+    assert "| TWIST | " not in markdown_table(only_cup)
+    assert plot_iqm(only_cup, tmp_path / "iqm.png").stat().st_size > 0
 
 
 def test_config_names_the_bad_value() -> None:

@@ -236,28 +236,37 @@ def collect_results(out: str | os.PathLike[str],
 def aggregate(results: pd.DataFrame) -> dict[str, Any]:
     """Per task and agent: mean and std over seeds of the run scores; per agent: the IQM of
     oracle-normalised run scores over tasks and seeds with its 95% interval stratified by
-    task. ``results`` has :data:`RESULT_COLUMNS`; every task needs an oracle."""
+    task. ``results`` has :data:`RESULT_COLUMNS`; every task needs an oracle. A task whose
+    oracle's mean score is not positive (a teacher that never learned it) has no ratio to
+    normalise by: it keeps its row of raw scores, stays out of the IQM and is listed under
+    ``unnormalised_tasks``."""
     if results.empty:
         raise ReportError("no evaluation results to aggregate")
     per_task: dict[str, dict[str, dict[str, float]]] = {}
     normalised: dict[str, dict[str, list[float]]] = {}
+    unnormalised: list[str] = []
     for task, rows in results.groupby("task", sort=False):
         oracle = rows.loc[rows["agent"] == "oracle", "score"]
         if oracle.empty:
             raise ReportError(f"task {task!r} has no oracle results to normalise by")
         oracle_mean = float(oracle.mean())
+        if oracle_mean <= 0:
+            log.warning("task %s: the oracle's mean score is %.1f, so its scores are not "
+                        "normalised and stay out of the IQM", task, oracle_mean)
+            unnormalised.append(str(task))
         per_task[task] = {}
         for agent, group in rows.groupby("agent", sort=False):
             scores = group["score"].to_numpy()
             per_task[task][agent] = {"mean": float(scores.mean()),
                                      "std": float(scores.std(ddof=0)), "seeds": len(scores)}
-            normalised.setdefault(agent, {})[task] = list(scores / oracle_mean)
+            if oracle_mean > 0:
+                normalised.setdefault(agent, {})[task] = list(scores / oracle_mean)
     iqm = {}
     for agent, by_task in normalised.items():
         interval = stratified_bootstrap(list(by_task.values()))
         iqm[agent] = {"iqm": interval.estimate, "ci95": [interval.low, interval.high],
                       "runs": sum(len(v) for v in by_task.values()), "tasks": len(by_task)}
-    return {"per_task": per_task, "normalised_iqm": iqm}
+    return {"per_task": per_task, "normalised_iqm": iqm, "unnormalised_tasks": unnormalised}
 
 
 def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) -> str:
@@ -265,23 +274,28 @@ def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) 
     paper's values beneath it, then the aggregate IQM of normalised scores."""
     per_task = summary["per_task"]
     agents = [a for a in AGENTS if any(a in row for row in per_task.values())]
-    scale = ("" if config is None else
-             f"`{config.preset}` preset, {len(config.seeds)} seed(s), "
-             f"{config.eval_episodes} {config.eval_dr} episodes per run")
     lines = [f"| Task | {' | '.join(AGENTS[a] for a in agents)} |",
              "|" + "---|" * (len(agents) + 1)]
     for task, row in per_task.items():
+        # Seeds per task, not the config's: tasks of one report may have been run apart.
+        scale = ("" if config is None else
+                 f", `{config.preset}` preset, {max(r['seeds'] for r in row.values())} "
+                 f"seed(s), {config.eval_episodes} {config.eval_dr} episodes per run")
         cells = [f"{row[a]['mean']:.1f} ± {row[a]['std']:.1f}" if a in row else "–"
                  for a in agents]
-        lines.append(f"| {task} (ours{', ' + scale if scale else ''}) | {' | '.join(cells)} |")
+        lines.append(f"| {task} (ours{scale}) | {' | '.join(cells)} |")
         paper = PAPER_TABLE_I.get(task, {})
         paper_cells = [f"{paper[a]:.1f}" if a in paper else "" for a in agents]
         lines.append(f"| {task} (paper, `paper` scale) | {' | '.join(paper_cells)} |")
     lines += ["", "| Agent | IQM of oracle-normalised return [95% CI] | runs |", "|---|---|---|"]
     for agent in agents:
-        s = summary["normalised_iqm"][agent]
-        lines.append(f"| {AGENTS[agent]} | {s['iqm']:.3f} [{s['ci95'][0]:.3f}, "
-                     f"{s['ci95'][1]:.3f}] | {s['runs']} |")
+        s = summary["normalised_iqm"].get(agent)
+        if s is not None:
+            lines.append(f"| {AGENTS[agent]} | {s['iqm']:.3f} [{s['ci95'][0]:.3f}, "
+                         f"{s['ci95'][1]:.3f}] | {s['runs']} |")
+    if summary.get("unnormalised_tasks"):
+        lines += ["", "Not normalised, because the oracle's mean score is not positive: "
+                  f"{', '.join(summary['unnormalised_tasks'])}."]
     return "\n".join(lines) + "\n"
 
 
@@ -289,7 +303,10 @@ def plot_iqm(summary: dict[str, Any], out: str | os.PathLike[str]) -> Path:
     """The aggregate IQM of normalised returns per agent with its 95% interval (Fig. 2)."""
     iqm = summary["normalised_iqm"]
     agents = [a for a in AGENTS if a in iqm][::-1]
-    with figure(out, (6.0, 0.5 + 0.45 * len(agents))) as (_, ax):
+    with figure(out, (6.0, 0.5 + 0.45 * max(len(agents), 1))) as (_, ax):
+        if not agents:
+            ax.text(0.5, 0.5, "no task could be normalised (every oracle scored <= 0)",
+                    ha="center", va="center", transform=ax.transAxes)
         for y, agent in enumerate(agents):
             low, high = iqm[agent]["ci95"]
             ax.plot([low, high], [y, y], color="tab:blue", lw=6, alpha=0.4, solid_capstyle="butt")
