@@ -48,6 +48,16 @@ def test_bootstrap_interval_holds_the_estimate_and_shrinks_with_data() -> None:
     assert stratified_bootstrap([np.ones(3), np.ones(3)]).high == 1.0  # no spread, no width
 
 
+def test_bootstrap_keeps_a_stratum_of_one_score_in_every_resample() -> None:
+    # A task run on one seed beside a task run on three: the single score is in every
+    # resample, so each resampled pooled IQM is the mean of the middle two of
+    # {0.5, three draws from {0.8, 0.9, 1.0}}, between 0.8 and 1.0.
+    interval = stratified_bootstrap([np.array([0.5]), np.array([0.8, 0.9, 1.0])], seed=2)
+    assert interval.estimate == pytest.approx(0.85)
+    assert 0.8 <= interval.low <= 0.85 <= interval.high <= 1.0
+    assert interval.high > interval.low
+
+
 def _constant(value: float):
     return lambda step: np.full(1, value, np.float32)
 

@@ -44,13 +44,19 @@ def stratified_bootstrap(strata: Sequence[np.ndarray], confidence: float = 0.95,
     if not 0 < confidence < 1:
         raise ConfigError(f"confidence must be in (0, 1), got {confidence}")
 
-    def pooled_iqm(*samples: np.ndarray, axis: int = -1) -> np.ndarray:
-        return iqm(np.concatenate(samples, axis=axis), axis=axis)
+    # A stratum of one score resamples to itself every time (and scipy refuses samples of one
+    # observation), so such strata join every resample as constants.
+    fixed = np.concatenate([g for g in groups if g.size == 1] or [np.empty(0)])
+    varying = tuple(g for g in groups if g.size > 1)
 
-    estimate = float(pooled_iqm(*groups))
-    if all(g.size == 1 for g in groups) or np.ptp(np.concatenate(groups)) == 0:
+    def pooled_iqm(*samples: np.ndarray, axis: int = -1) -> np.ndarray:
+        constants = np.broadcast_to(fixed, samples[0].shape[:-1] + fixed.shape)
+        return iqm(np.concatenate([*samples, constants], axis=-1), axis=-1)
+
+    estimate = float(iqm(np.concatenate(groups)))
+    if not varying or np.ptp(np.concatenate(groups)) == 0:
         return Interval(estimate, estimate, estimate)  # nothing to resample
-    result = stats.bootstrap(groups, pooled_iqm, n_resamples=resamples, vectorized=True,
+    result = stats.bootstrap(varying, pooled_iqm, n_resamples=resamples, vectorized=True,
                              paired=False, confidence_level=confidence, method="percentile",
                              rng=np.random.default_rng(seed))
     ci = result.confidence_interval
