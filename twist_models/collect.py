@@ -570,8 +570,7 @@ class _Run:
         return latest
 
     def _log_metrics(self, episode_return: float) -> None:
-        row = {"frames": self.frames, "episodes": self.writer.n_episodes,
-               "updates": int(self.teacher.step), "return": episode_return,
+        row = {**self._counters(), "updates": int(self.teacher.step), "return": episode_return,
                "wall_s": round(sum(self.seconds.values()), 2),
                **{f"seconds_{k}": round(v, 3) for k, v in self.seconds.items()},
                **self.train_metrics}

@@ -310,7 +310,8 @@ def summarise(table: pd.DataFrame, config: EvalConfig) -> dict[str, Any]:
             "mean": float(per_seed.mean()),
             "std_over_seeds": float(per_seed.std(ddof=0)),
             "std_over_episodes": float(rows["return"].std(ddof=0))}
-        if oracle_mean:
+        # As the report's aggregate: a non-positive oracle mean gives no ratio to normalise by.
+        if oracle_mean is not None and oracle_mean > 0:
             strata = [g["return"].to_numpy() / oracle_mean for _, g in rows.groupby("seed")]
             interval = stratified_bootstrap(strata)
             entry["normalised_iqm"] = interval.estimate
