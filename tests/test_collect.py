@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 import torch
 
-from twist_data.errors import UnknownTaskError
+from twist_data.errors import ConfigError, UnknownTaskError
 from twist_data.randomisation import derived_seed
 from twist_data.reader import open_dataset
 from twist_data.tasks import Dynamics, TaskEnv
@@ -219,6 +219,27 @@ def test_world_model_warms_up_alone_before_behaviour_learning(tmp_path: Path) ->
     # Rows of warm-up updates have world-model losses but no actor-critic losses.
     assert trained["model_loss"].notna().all()
     assert list(trained["actor_loss"].notna()) == list(trained["updates"] > warmup)
+
+
+def test_a_finished_run_extends_d_with_its_frozen_teacher(tmp_path: Path) -> None:
+    learned = collect_preset("tiny", frames=200)
+    collect(tmp_path, learned)
+    runs = tmp_path / "collect" / "collect-000"
+    before = read_checkpoint(runs / "teacher.pt", kind="teacher")
+    evaluations = len(pd.read_csv(runs / "eval.csv"))
+    extended = dataclasses.replace(learned, frames=500, learn_frames=200)
+    summary = collect(tmp_path, extended, resume=True)
+    assert summary.frames == 500 and verify_dataset(tmp_path).ok
+    after = read_checkpoint(runs / "teacher.pt", kind="teacher")
+    assert summary.updates == learned.updates_due(200) == extended.updates_due(500)
+    assert all(torch.equal(value, after.weights[key]) for key, value in before.weights.items())
+    dataset = open_dataset(tmp_path)
+    tail = [dataset.episode_info(i) for i in range(2, dataset.n_episodes)]
+    assert len(tail) == 3
+    assert all((i.policy, i.teacher_step) == ("teacher", summary.updates) for i in tail)
+    assert len(pd.read_csv(runs / "eval.csv")) == evaluations  # nothing new to evaluate
+    with pytest.raises(ConfigError, match="learn_frames 100 ends learning before"):
+        collect_preset("tiny", learn_frames=100)
 
 
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:

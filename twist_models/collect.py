@@ -94,6 +94,10 @@ class CollectConfig:
     """Teacher size preset (``tiny``, ``quick``, ``paper``)."""
     frames: int = 100_000
     """Environment frames to collect (agent steps x action repeat), prefill included."""
+    learn_frames: int | None = None
+    """Frames after which the teacher stops learning and, frozen, goes on acting (sampling its
+    actions) until ``frames``: more of D at ~1 s per episode instead of ~70 s; None: it learns
+    until ``frames``."""
     views: int = 2
     """K randomised renders per step."""
     image_size: int = 64
@@ -169,6 +173,9 @@ class CollectConfig:
                          "batch_size", "batch_length", "eval_every", "snapshot_every")
         require_non_negative(self, "prefill_frames", "pretrain_updates", "eval_episodes",
                              "behaviour_from")
+        if self.learn_frames is not None and self.learn_frames <= self.prefill_frames:
+            raise ConfigError(f"learn_frames {self.learn_frames} ends learning before the "
+                              f"teacher first acts (prefill_frames {self.prefill_frames})")
         if self.max_steps is not None and self.max_steps < self.batch_length:
             raise ConfigError(f"max_steps {self.max_steps} is shorter than one replay window "
                               f"(batch_length {self.batch_length})")
@@ -186,8 +193,16 @@ class CollectConfig:
             world_model=dataclasses.replace(config.world_model, **model),
             actor_critic=dataclasses.replace(config.actor_critic, **behaviour))
 
+    @property
+    def learn_end(self) -> int:
+        """The frame count at which the teacher's last update is owed."""
+        return self.frames if self.learn_frames is None else min(self.frames, self.learn_frames)
+
     def updates_due(self, frames: int) -> int:
-        """Teacher updates owed once ``frames`` frames are in D (DreamerV2's train ratio)."""
+        """Teacher updates owed once ``frames`` frames are in D (DreamerV2's train ratio); none
+        are owed for frames past ``learn_frames``."""
+        if self.learn_frames is not None:
+            frames = min(frames, self.learn_frames)
         if frames < self.prefill_frames:
             return 0
         steps_after_prefill = (frames - self.prefill_frames) // self.action_repeat
@@ -350,7 +365,8 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     stored = folder / "config.json"
     if resume and stored.exists():
         before = json.loads(stored.read_text())["collect"]
-        refuse_resume(resume_conflicts(before, to_json(config), "frames"), CollectError)
+        refuse_resume(resume_conflicts(before, to_json(config), ("frames", "learn_frames")),
+                      CollectError, "--steps and --set learn_frames=N")
 
 
 class _Run:
@@ -417,7 +433,8 @@ class _Run:
         while self.frames < c.frames:
             episode_return = self._collect_episode()
             self._train()
-            if self.frames >= self.next_eval:
+            # A frozen teacher is evaluated once, at the first due evaluation after it froze.
+            if self.frames >= self.next_eval and self.evaluated_at < c.learn_end:
                 self._evaluate()
             self._checkpoint()
             self._log_metrics(episode_return)
@@ -427,7 +444,7 @@ class _Run:
                                      int(self.teacher.step), episode_return,
                                      self.eval_returns[-1] if self.eval_returns else None,
                                      (self.frames - start_frames) / elapsed))
-        if self.evaluated_at != self.frames:
+        if self.evaluated_at < min(self.frames, c.learn_end):
             self._evaluate()
         final = self._checkpoint(final=True)
         summary = CollectSummary(

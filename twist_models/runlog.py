@@ -53,16 +53,18 @@ def prepare_output(out: Path, error: type[TwistError]) -> None:
         raise error(f"output folder {str(out)!r} is not writable")
 
 
-def resume_conflicts(before: Mapping[str, Any], now: Mapping[str, Any], mutable: str
-                     ) -> list[str]:
-    """``name was X, now Y`` for every config field but ``mutable`` that a resumed run would
-    change."""
+def resume_conflicts(before: Mapping[str, Any], now: Mapping[str, Any],
+                     mutable: tuple[str, ...]) -> list[str]:
+    """``name was X, now Y`` for every config field outside ``mutable`` that a resumed run
+    would change."""
     return [f"{k} was {before.get(k)!r}, now {v!r}" for k, v in now.items()
-            if k != mutable and before.get(k) != v]
+            if k not in mutable and before.get(k) != v]
 
 
-def refuse_resume(conflicts: list[str], error: type[TwistError]) -> None:
-    """Raise ``error`` naming every conflict, if there is any."""
+def refuse_resume(conflicts: list[str], error: type[TwistError],
+                  may_change: str = "--steps") -> None:
+    """Raise ``error`` naming every conflict, if there is any; ``may_change`` names the options
+    that a resumed run may change."""
     if conflicts:
-        raise error(f"--resume with a different config ({'; '.join(conflicts)}); only --steps "
-                    "may change when resuming")
+        raise error(f"--resume with a different config ({'; '.join(conflicts)}); only "
+                    f"{may_change} may change when resuming")
