@@ -238,6 +238,8 @@ def test_a_finished_run_extends_d_with_its_frozen_teacher(tmp_path: Path) -> Non
     assert len(tail) == 3
     assert all((i.policy, i.teacher_step) == ("teacher", summary.updates) for i in tail)
     assert len(pd.read_csv(runs / "eval.csv")) == evaluations  # nothing new to evaluate
+    # tiny snapshots every 200 frames, but a frozen teacher's would be copies of teacher.pt.
+    assert sorted(p.name for p in runs.glob("teacher-*.pt")) == ["teacher-00000200.pt"]
     with pytest.raises(ConfigError, match="learn_frames 100 ends learning before"):
         collect_preset("tiny", learn_frames=100)
 

@@ -193,10 +193,9 @@ class CollectConfig:
             world_model=dataclasses.replace(config.world_model, **model),
             actor_critic=dataclasses.replace(config.actor_critic, **behaviour))
 
-    @property
-    def learn_end(self) -> int:
-        """The frame count at which the teacher's last update is owed."""
-        return self.frames if self.learn_frames is None else min(self.frames, self.learn_frames)
+    def learns_at(self, frames: int) -> bool:
+        """Whether the teacher still learns (or has just learned) once ``frames`` are in D."""
+        return self.learn_frames is None or frames <= self.learn_frames
 
     def updates_due(self, frames: int) -> int:
         """Teacher updates owed once ``frames`` frames are in D (DreamerV2's train ratio); none
@@ -221,7 +220,11 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # 10K random frames come before behaviour learning; a 12x faster actor (1e-3) and a
     # DreamerV3 critic (two-hot, normalised returns) fit the ~1,100 behaviour updates that
     # the main job's 22 minutes allow; 15-step open-loop overshooting trains what imagination uses.
-    "quick": CollectConfig(model="quick", frames=28_000, eval_every=4_000, eval_episodes=3,
+    # The teacher learns for 28K frames, then acts frozen to 300K (~3 minutes): the student
+    # distilled from 300 episodes tracks the teacher's h far better than from 28 (README,
+    # "Ninth session").
+    "quick": CollectConfig(model="quick", frames=300_000, learn_frames=28_000,
+                           eval_every=4_000, eval_episodes=3,
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,
                            pretrain_updates=2_000, behaviour_from=2_000, train_every=4,
                            batch_size=32, imag_starts=256, model_lr=1e-3, overshoot=15,
@@ -433,8 +436,7 @@ class _Run:
         while self.frames < c.frames:
             episode_return = self._collect_episode()
             self._train()
-            # A frozen teacher is evaluated once, at the first due evaluation after it froze.
-            if self.frames >= self.next_eval and self.evaluated_at < c.learn_end:
+            if self.frames >= self.next_eval and self._changed_since_evaluation():
                 self._evaluate()
             self._checkpoint()
             self._log_metrics(episode_return)
@@ -444,7 +446,7 @@ class _Run:
                                      int(self.teacher.step), episode_return,
                                      self.eval_returns[-1] if self.eval_returns else None,
                                      (self.frames - start_frames) / elapsed))
-        if self.evaluated_at < min(self.frames, c.learn_end):
+        if self.evaluated_at != self.frames and self._changed_since_evaluation():
             self._evaluate()
         final = self._checkpoint(final=True)
         summary = CollectSummary(
@@ -511,6 +513,11 @@ class _Run:
         self.train_metrics = {k: float(np.mean(v)) for k, v in metrics.items()}
         self.seconds["learn"] += time.perf_counter() - tick
 
+    def _changed_since_evaluation(self) -> bool:
+        """False once the teacher froze and was evaluated (at the first evaluation due after
+        its last update): a frozen teacher is evaluated once."""
+        return self.config.learns_at(self.evaluated_at + 1)
+
     def _evaluate(self) -> None:
         c = self.config
         tick = time.perf_counter()
@@ -563,12 +570,10 @@ class _Run:
 
     def _checkpoint(self, final: bool = False) -> Path:
         tick = time.perf_counter()
-        if self.frames >= self.next_snapshot:
-            while self.next_snapshot <= self.frames:
-                self.next_snapshot += self.config.snapshot_every
-            snapshot = True
-        else:
-            snapshot = False
+        # A frozen teacher's snapshots would all be copies of teacher.pt.
+        snapshot = self.next_snapshot <= self.frames and self.config.learns_at(self.frames)
+        while self.next_snapshot <= self.frames:
+            self.next_snapshot += self.config.snapshot_every
         extra = {"torch_rng": torch.get_rng_state().tolist(),
                  "replay_rng": self.replay.rng_state if self.replay is not None
                  else self.replay_state,
