@@ -87,11 +87,12 @@ def test_losses_match_an_independent_computation() -> None:
     assert all(float(v) == pytest.approx(0.0, abs=1e-6) for v in same.values())
 
 
-def _objective(imagined: bool = True) -> tuple[Distillation, dict[str, torch.Tensor]]:
+def _objective(imagined: bool = True, **weights: float
+               ) -> tuple[Distillation, dict[str, torch.Tensor]]:
     torch.manual_seed(0)
     teacher = Teacher(teacher_preset("tiny", 5, 1))
     student = Student(student_preset("tiny", teacher.config, image_size=64))
-    config = distil_preset("tiny", imagined=imagined)
+    config = distil_preset("tiny", imagined=imagined, **weights)
     g = torch.Generator().manual_seed(0)
     is_first = torch.zeros(2, 8, dtype=torch.bool)
     is_first[:, 0] = True
@@ -118,6 +119,28 @@ def test_no_gradient_reaches_the_teacher_and_eq4_is_optional() -> None:
     assert set(terms) == {"h", "prior_kl", "post_kl"}
     total = terms["h"] + terms["prior_kl"] + terms["post_kl"]
     assert float(loss.detach()) == pytest.approx(float(total.detach()))
+
+
+def test_action_matching_compares_the_actors_modes_and_trains_only_the_student() -> None:
+    objective, batch = _objective(imagined=False, h_weight=0.0, prior_weight=0.0,
+                                  post_weight=0.0, action_weight=2.0)
+    torch.manual_seed(1)  # the sampling draws of the filter
+    loss, terms = objective(batch)
+    torch.manual_seed(1)
+    s_post, t_post, _ = objective.filter(batch)
+    actor, teacher = objective.teacher.actor_critic.actor, objective.teacher
+    with torch.no_grad():
+        a_student = actor(objective.student.rssm.feature(s_post)).mode
+        a_teacher = actor(teacher.world_model.rssm.feature(t_post)).mode
+    # An independent computation of the term: mean over [B, L] of the summed squares.
+    by_hand = float(((a_student - a_teacher) ** 2).sum(-1).mean())
+    assert by_hand > 0
+    assert float(terms["action"].detach()) == pytest.approx(by_hand, rel=1e-5)
+    assert float(loss.detach()) == pytest.approx(2.0 * by_hand, rel=1e-5)
+    loss.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0
+               for p in objective.student.encoder.parameters())
+    assert all(p.grad is None for p in teacher.parameters())
 
 
 def test_shared_draws_give_equal_samples_to_equal_distributions() -> None:

@@ -105,6 +105,17 @@ def test_config_names_the_bad_value() -> None:
     assert ReportConfig(agents=("twist",)).agents == ("oracle", "twist")
 
 
+def test_frames_override_sets_how_long_the_teacher_learns() -> None:
+    quick = ReportConfig(preset="quick").collect_config("cup-catch", 2)
+    assert (quick.task, quick.seed, quick.frames) == ("cup-catch", 2, 300_000)
+    longer = ReportConfig(preset="quick", frames=200_000).collect_config("cup-catch", 0)
+    assert (longer.learn_frames, longer.frames) == (200_000, 300_000)
+    beyond = ReportConfig(preset="quick", frames=400_000).collect_config("cup-catch", 0)
+    assert (beyond.learn_frames, beyond.frames) == (400_000, 400_000)
+    tiny = ReportConfig(preset="tiny", frames=300).collect_config("cartpole-balance", 0)
+    assert (tiny.learn_frames, tiny.frames) == (None, 300)
+
+
 def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_path: Path) -> None:
     config = ReportConfig(tasks=("cartpole-balance",), seeds=(3,), preset="tiny",
                           eval_episodes=1, eval_max_steps=10)

@@ -96,8 +96,8 @@ class CollectConfig:
     """Environment frames to collect (agent steps x action repeat), prefill included."""
     learn_frames: int | None = None
     """Frames after which the teacher stops learning and, frozen, goes on acting (sampling its
-    actions) until ``frames``: more of D at ~1 s per episode instead of ~70 s; None: it learns
-    until ``frames``."""
+    actions) until ``frames``: more of D at ~0.7 s per ``quick`` episode instead of the 13-25 s
+    of updates each costs while the teacher learns; None: it learns until ``frames``."""
     views: int = 2
     """K randomised renders per step."""
     image_size: int = 64
@@ -514,8 +514,8 @@ class _Run:
         self.seconds["learn"] += time.perf_counter() - tick
 
     def _changed_since_evaluation(self) -> bool:
-        """False once the teacher froze and was evaluated (at the first evaluation due after
-        its last update): a frozen teacher is evaluated once."""
+        """Whether the teacher may have changed since its last evaluation: not once it froze
+        and was evaluated (at the first evaluation due after its last update)."""
         return self.config.learns_at(self.evaluated_at + 1)
 
     def _evaluate(self) -> None:

@@ -63,7 +63,11 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import plot_agreement
-from twist_models.losses import distillation_loss, imagined_distillation_loss
+from twist_models.losses import (
+    action_matching_loss,
+    distillation_loss,
+    imagined_distillation_loss,
+)
 from twist_models.runlog import (
     Board,
     append_csv,
@@ -121,6 +125,9 @@ class DistilConfig:
     """Weight of KL(posterior_student || posterior_teacher) on data (Eq. 3)."""
     imagined_weight: float = 1.0
     """Weight of the whole imagined term (Eq. 4)."""
+    action_weight: float = 0.0
+    """Weight of the action-matching term: the teacher's actor on the student's posterior
+    against it on the teacher's (not in the paper; 0: the paper's objective)."""
     view: int | None = None
     """Camera view shown at every step; None: a random one of the K per step."""
     lr: float = 3e-4
@@ -149,7 +156,7 @@ class DistilConfig:
         require_positive(self, "steps", "batch_size", "length", "horizon", "lr",
                          "heldout_windows", "eval_every", "checkpoint_every", "snapshot_every")
         require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
-                             "post_weight", "imagined_weight", "workers")
+                             "post_weight", "imagined_weight", "action_weight", "workers")
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         if self.view is not None and self.view < 0:
@@ -198,7 +205,7 @@ class Distillation(nn.Module):
     def __init__(self, student: Student, teacher: Teacher, config: DistilConfig) -> None:
         super().__init__()
         self.student = student
-        self._teacher = [teacher]
+        self._teacher = [teacher.requires_grad_(False)]  # a target: gradients stop at it
         self.config = config
 
     @property
@@ -212,6 +219,9 @@ class Distillation(nn.Module):
         s_post, t_post, terms = self.filter(batch)
         loss = (c.h_weight * terms["h"] + c.prior_weight * terms["prior_kl"]
                 + c.post_weight * terms["post_kl"])
+        if c.action_weight > 0:
+            terms["action"] = self.action_term(s_post, t_post)
+            loss = loss + c.action_weight * terms["action"]
         if c.imagined and c.imagined_weight > 0:
             imagined = self.imagined_terms(s_post, t_post)
             terms.update({f"imagined_{k}": v for k, v in imagined.items()})
@@ -235,6 +245,15 @@ class Distillation(nn.Module):
                                                uniform=post_draws)
         terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
         return s_post, t_post, terms
+
+    def action_term(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
+                    ) -> torch.Tensor:
+        """The teacher's actor (mode) on both posteriors [B, L, ...], matched; the gradient
+        reaches the student's latent through the frozen actor."""
+        actor = self.teacher.actor_critic.actor
+        with torch.no_grad():
+            target = actor(self.teacher.world_model.rssm.feature(t_post)).mode
+        return action_matching_loss(actor(self.student.rssm.feature(s_post)).mode, target)
 
     def imagined_terms(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
                        ) -> dict[str, torch.Tensor]:

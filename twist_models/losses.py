@@ -127,3 +127,12 @@ def imagined_distillation_loss(student: dict[str, torch.Tensor],
         "prior_kl": categorical_kl(student["logits"][:, 1:],
                                    teacher["logits"][:, 1:].detach()).mean(),
     }
+
+
+def action_matching_loss(student_action: torch.Tensor, teacher_action: torch.Tensor
+                         ) -> torch.Tensor:
+    """The teacher's actor on the student's latent against the same actor on the teacher's:
+    ``*_action`` [..., A], each the actor's mode. Returns ||a_teacher - a_student||^2 summed
+    over A and averaged over the rest, []. Not in the paper: it weights the latent errors by
+    how much the actor the student serves responds to them."""
+    return ((student_action - teacher_action.detach()) ** 2).sum(-1).mean()

@@ -93,7 +93,9 @@ class ReportConfig:
     eval_max_steps: int | None = None
     """Agent steps per evaluation episode; None: the task's own limit."""
     frames: int | None = None
-    """Override of the collection preset's frames; None keeps the preset's."""
+    """Override of the frames the teacher learns for (the collection preset's ``learn_frames``,
+    or its ``frames`` where it has none; D keeps the preset's frames where they are more);
+    None keeps the preset's."""
     updates: int | None = None
     """Override of the student's updates; the baselines always get the student's budget."""
 
@@ -120,6 +122,17 @@ class ReportConfig:
         for name in ("frames", "updates", "eval_max_steps"):
             if getattr(self, name) is not None:
                 require_positive(self, name)
+
+
+    def collect_config(self, task: str, seed: int) -> CollectConfig:
+        """The collector config of one (task, seed) of the report."""
+        config = collect_preset(self.preset, task=task, seed=seed)
+        learn = self.frames
+        if learn is None:
+            return config
+        if config.learn_frames is None:
+            return dataclasses.replace(config, frames=learn)
+        return dataclasses.replace(config, learn_frames=learn, frames=max(config.frames, learn))
 
 
 def run_reproduction(out: str | os.PathLike[str], config: ReportConfig, device: str = "cpu",
@@ -172,8 +185,7 @@ class _Pipeline:
                 device=self.device)
 
     def _collect_config(self) -> CollectConfig:
-        return collect_preset(self.config.preset, task=self.task, seed=self.seed,
-                              frames=self.config.frames)
+        return self.config.collect_config(self.task, self.seed)
 
     def _train(self, name: str) -> Path:
         folder = self.root / name
