@@ -10,9 +10,10 @@ from typing import Annotated
 
 import typer
 
-from twist_cli.common import new_app, out, progress_bar, run_app
+from twist_cli.common import new_app, out, parse_settings, progress_bar, run_app
 from twist_models.distill import (
     DISTIL_PRESETS,
+    DistilConfig,
     distil,
     distil_preset,
     initialise_distributed,
@@ -52,6 +53,9 @@ def main(
     resume: Annotated[bool, typer.Option(
         "--resume", help="Continue an interrupted run in --out.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+    settings: Annotated[list[str] | None, typer.Option(
+        "--set", help="Override any DistilConfig field, KEY=VALUE (repeatable), e.g. "
+                      "--set action_weight=10 --set lr=1e-3.")] = None,
 ) -> None:
     """Train a student world model to put domain-randomised images into the teacher's latent
     space (TWIST Eq. 3 and Eq. 4), offline, and write a deployable agent bundle."""
@@ -61,6 +65,7 @@ def main(
         "action_noise": action_noise, "imagined": False if no_imagined else None,
         "copy_dynamics": False if scratch_dynamics else None,
         "view": view, "workers": workers, "seed": seed}.items() if v is not None}
+    given.update(parse_settings(settings or [], DistilConfig))
     if resume and (folder / "config.json").exists():
         config = dataclasses.replace(stored_config(folder), **given)
     else:

@@ -297,6 +297,10 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
         "longer than every episode": ["--teacher", str(teacher), "--length", "500", "--out",
                                       str(tmp_path / "c")],
         "one final teacher": ["--out", str(tmp_path / "d")],  # synthetic data has none
+        "action_weight must be >= 0, got -1": ["--teacher", str(teacher), "--set",
+                                               "action_weight=-1", "--out", str(tmp_path / "g")],
+        "KEY one of": ["--teacher", str(teacher), "--set", "nope=1", "--out",
+                       str(tmp_path / "h")],
     }
     for expected, args in cases.items():
         result = _cli(*base, *args)
