@@ -27,7 +27,8 @@ def main(
     episodes: Annotated[int, typer.Option(help="Evaluation episodes per agent and seed.")] = 10,
     max_steps: Annotated[int | None, typer.Option(help="Agent steps per evaluation episode.")
                          ] = None,
-    frames: Annotated[int | None, typer.Option(help="Frames the teacher learns for [the preset's].")] = None,
+    frames: Annotated[int | None, typer.Option(
+        help="Frames the teacher learns for [the preset's].")] = None,
     updates: Annotated[int | None, typer.Option(
         help="Student updates, also the baselines' budget [the preset's].")] = None,
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",

@@ -123,7 +123,6 @@ class ReportConfig:
             if getattr(self, name) is not None:
                 require_positive(self, name)
 
-
     def collect_config(self, task: str, seed: int) -> CollectConfig:
         """The collector config of one (task, seed) of the report."""
         config = collect_preset(self.preset, task=task, seed=seed)
