@@ -31,6 +31,7 @@ from twist_models.distill import (
     load_student,
 )
 from twist_models.losses import distillation_loss, imagined_distillation_loss
+from twist_models.runlog import append_csv
 from twist_models.student import Student, copy_teacher_dynamics
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 
@@ -352,3 +353,12 @@ def test_torchrun_data_parallel_on_cpu(distil_inputs, tmp_path) -> None:
     assert config["world_size"] == 2
     assert dataclasses.asdict(distil_preset("tiny"))["batch_size"] == 2
     assert len(pd.read_csv(tmp_path / "ddp" / "metrics.csv")) >= 1
+
+
+def test_a_csv_log_keeps_its_own_columns_when_a_newer_version_appends(tmp_path) -> None:
+    log = tmp_path / "metrics.csv"
+    append_csv(log, {"updates": 1, "h": 0.5}, ("updates", "h"))
+    append_csv(log, {"updates": 2, "h": 0.25, "action": 0.1}, ("updates", "h", "action"))
+    table = pd.read_csv(log)
+    assert list(table.columns) == ["updates", "h"]
+    assert table.to_dict("list") == {"updates": [1, 2], "h": [0.5, 0.25]}

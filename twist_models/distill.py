@@ -81,7 +81,7 @@ from twist_models.teacher import Teacher, find_teacher, load_teacher
 log = logging.getLogger(__name__)
 
 KEYS = ("image", "state", "action", "is_first")
-TERMS = ("h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl")
+TERMS = ("h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl", "action")
 METRIC_COLUMNS = ("updates", "wall_s", "updates_per_s", "data_wait_share", "loss", *TERMS,
                   "grad_norm")
 HELDOUT_COLUMNS = ("updates", "h_mse", "post_kl", "prior_kl", "imagined_h_mse")

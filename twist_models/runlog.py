@@ -13,8 +13,13 @@ from twist_data.errors import TwistError
 
 
 def append_csv(path: Path, row: dict[str, Any], columns: tuple[str, ...]) -> None:
-    """Append one row with fixed ``columns`` (missing values empty), header on first write."""
+    """Append one row with fixed ``columns`` (missing values empty), header on first write. A
+    file that exists keeps its own header's columns (one written by an older version, resumed,
+    stays a valid table)."""
     new = not path.exists()
+    if not new:
+        with path.open(newline="") as f:
+            columns = tuple(next(csv.reader(f), None) or columns)
     with path.open("a", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=columns, restval="", extrasaction="ignore")
         if new:
