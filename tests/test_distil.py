@@ -21,7 +21,7 @@ import torch
 
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
-from twist_models.config import student_preset, teacher_preset
+from twist_models.config import student_preset, teacher_preset, to_json
 from twist_models.distill import (
     DistilError,
     Distillation,
@@ -31,7 +31,7 @@ from twist_models.distill import (
     load_student,
 )
 from twist_models.losses import distillation_loss, imagined_distillation_loss
-from twist_models.runlog import append_csv
+from twist_models.runlog import append_csv, resume_conflicts
 from twist_models.student import Student, copy_teacher_dynamics
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 
@@ -362,3 +362,15 @@ def test_a_csv_log_keeps_its_own_columns_when_a_newer_version_appends(tmp_path) 
     table = pd.read_csv(log)
     assert list(table.columns) == ["updates", "h"]
     assert table.to_dict("list") == {"updates": [1, 2], "h": [0.5, 0.25]}
+
+
+def test_a_run_stored_before_a_config_field_existed_resumes_under_its_default() -> None:
+    config = distil_preset("tiny", steps=20)
+    stored = to_json(config)
+    del stored["action_weight"]  # as a run saved before the field was added stores it
+    assert resume_conflicts(stored, dataclasses.replace(config, steps=40), ("steps",)) == []
+    changed = resume_conflicts(stored, dataclasses.replace(config, action_weight=2.0), ("steps",))
+    assert changed == ["action_weight was 0.0, now 2.0"]
+    stored["length"] = 9
+    assert resume_conflicts(stored, config, ("steps",)) == [
+        f"length was 9, now {config.length}"]

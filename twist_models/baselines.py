@@ -145,7 +145,7 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
                             "continue it, or another --out")
     if resume and stored.exists():
         before = json.loads(stored.read_text())["baseline"]
-        refuse_resume(resume_conflicts(before, to_json(config), ("steps",)), BaselineError)
+        refuse_resume(resume_conflicts(before, config, ("steps",)), BaselineError)
     torch.manual_seed(config.seed)
     model = Dreamer(dreamer_config)
     if latest.exists():

@@ -368,7 +368,7 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     stored = folder / "config.json"
     if resume and stored.exists():
         before = json.loads(stored.read_text())["collect"]
-        refuse_resume(resume_conflicts(before, to_json(config), ("frames", "learn_frames")),
+        refuse_resume(resume_conflicts(before, config, ("frames", "learn_frames")),
                       CollectError, "--steps and --set learn_frames=N")
 
 

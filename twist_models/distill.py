@@ -399,7 +399,7 @@ def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resum
                           "continue it, or another --out")
     if resume and stored.exists():
         before = json.loads(stored.read_text())
-        conflicts = resume_conflicts(before["distil"], to_json(config), ("steps",))
+        conflicts = resume_conflicts(before["distil"], config, ("steps",))
         if before.get("student") != to_json(student):
             conflicts.append("the student's sizes differ")
         refuse_resume(conflicts, DistilError)

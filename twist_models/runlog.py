@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from twist_data.errors import TwistError
+from twist_models.config import to_json
 
 
 def append_csv(path: Path, row: dict[str, Any], columns: tuple[str, ...]) -> None:
@@ -58,12 +59,20 @@ def prepare_output(out: Path, error: type[TwistError]) -> None:
         raise error(f"output folder {str(out)!r} is not writable")
 
 
-def resume_conflicts(before: Mapping[str, Any], now: Mapping[str, Any],
+def resume_conflicts(before: Mapping[str, Any], config: Any,
                      mutable: tuple[str, ...]) -> list[str]:
-    """``name was X, now Y`` for every config field outside ``mutable`` that a resumed run
-    would change."""
-    return [f"{k} was {before.get(k)!r}, now {v!r}" for k, v in now.items()
-            if k not in mutable and before.get(k) != v]
+    """``name was X, now Y`` for every field of the config dataclass ``config`` outside
+    ``mutable`` that a resumed run would change, against ``before``, the run's stored config
+    (JSON). A field ``before`` lacks was added after that run began; every new field's default
+    keeps the behaviour of the versions before it, so the run is compared with that default."""
+    now = to_json(config)
+    defaults = to_json(type(config)())
+    conflicts = []
+    for name, value in now.items():
+        was = before.get(name, defaults.get(name))
+        if name not in mutable and was != value:
+            conflicts.append(f"{name} was {was!r}, now {value!r}")
+    return conflicts
 
 
 def refuse_resume(conflicts: list[str], error: type[TwistError],
