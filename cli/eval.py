@@ -15,10 +15,11 @@ from twist_cli.common import new_app, out, parse_list, run_app
 from twist_data.errors import ConfigError
 from twist_data.tasks import DEFAULT_ACTION_REPEAT
 from twist_models.evaluation import (
+    EvalAgent,
     EvalConfig,
-    ImageAgent,
     StateAgent,
     agents_setting,
+    is_reference,
     load_agent,
     run_evaluation,
 )
@@ -26,12 +27,17 @@ from twist_models.evaluation import (
 app = new_app()
 
 
-def parse_agents(specs: list[str], device: str) -> dict[str, StateAgent | ImageAgent]:
-    """``NAME=PATH`` or ``PATH`` (named after its kind and file) -> {name: loaded agent}."""
-    agents: dict[str, StateAgent | ImageAgent] = {}
+def parse_agents(specs: list[str], device: str) -> dict[str, EvalAgent | str]:
+    """``NAME=PATH`` or ``PATH`` (named after its kind and file) -> {name: loaded agent}; a
+    reference agent stays a name (it is sized for the task once that is known)."""
+    agents: dict[str, EvalAgent | str] = {}
     for spec in specs:
         name, _, path = spec.rpartition("=")
-        agent = load_agent(path, device)
+        if is_reference(path):
+            agent: EvalAgent | str = path
+            name = name or path
+        else:
+            agent = load_agent(path, device)
         if not name:
             kind = "oracle" if isinstance(agent, StateAgent) else "student"
             name = f"{kind}-{Path(path).stem}"
@@ -44,8 +50,9 @@ def parse_agents(specs: list[str], device: str) -> dict[str, StateAgent | ImageA
 @app.command()
 def main(
     agent: Annotated[list[str], typer.Option(
-        help="Teacher checkpoint (the oracle, on states) or agent bundle (agent.pt, on "
-             "images), as PATH or NAME=PATH; repeat for several.")],
+        help="Teacher checkpoint (the oracle, on states), agent bundle (agent.pt, on "
+             "images) or a reference agent (zero, random), as PATH or NAME=PATH; repeat "
+             "for several.")],
     task: Annotated[str | None, typer.Option(help="Task [the first agent's].")] = None,
     dr: Annotated[str, typer.Option(help="DR preset of the scenes.")] = "heldout",
     backgrounds: Annotated[Path | None, typer.Option(

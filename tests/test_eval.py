@@ -188,3 +188,30 @@ def test_an_evaluation_rerun_scores_exactly_the_same(gl, agents) -> None:
     second = [r.episode_return for r in evaluate(oracle, config, seed=3)]
     assert first == second
     assert torch.equal(torch.get_rng_state(), state)  # the caller's stream is untouched
+
+
+def test_reference_agents_score_what_their_actions_earn(gl, agents, tmp_path) -> None:
+    config = EvalConfig(task="cartpole-balance", dr="none", episodes=2, max_steps=25)
+    zero = [r.episode_return for r in evaluate(load_agent("zero", task=config.task), config)]
+    assert zero == [r.episode_return for r in evaluate(ScriptedAgent(_constant(0.0)), config)]
+    random = load_agent("random", task=config.task)
+    first = [r.episode_return for r in evaluate(random, config)]
+    assert first == [r.episode_return for r in evaluate(random, config)]  # seeded per episode
+    assert first != zero
+    with pytest.raises(EvalError, match="'zero' needs a task"):
+        load_agent("zero")
+
+    # Beside a trained agent the CLI takes the task from it; reference rows are so marked.
+    result = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent",
+                             f"oracle={agents['teacher']}", "--agent", "zero", "--agent",
+                             "noise=random", "--episodes", "1", "--max-steps", "10",
+                             "--out", str(tmp_path)], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, result.stderr
+    table = pd.read_csv(tmp_path / "episodes.csv")
+    assert dict(zip(table["agent"], table["kind"], strict=True)) == {
+        "oracle": "oracle", "zero": "reference", "noise": "reference"}
+    alone = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent", "zero",
+                            "--out", str(tmp_path / "alone")], capture_output=True, text=True,
+                           timeout=300)
+    assert alone.returncode == 2 and "pass --task" in alone.stderr, alone.stderr

@@ -147,8 +147,52 @@ class ScriptedAgent:
         return self.policy(step)
 
 
-def load_agent(path: str | os.PathLike[str], device: str = "cpu") -> StateAgent | ImageAgent:
-    """A teacher checkpoint becomes the state oracle, an agent bundle the image agent."""
+#: Agents ``twist-eval --agent NAME`` knows without a file: the floor a trained agent must
+#: clear. On cartpole-balance a pole left alone still scores ~1/3 of the oracle (it starts
+#: upright and the reward is smooth), which an oracle-normalised score alone hides.
+REFERENCE_AGENTS = {
+    "zero": "every action 0 (the agent that does nothing)",
+    "random": "actions uniform in [-1, 1], seeded per episode",
+}
+
+
+class ReferenceAgent:
+    """A reference policy from :data:`REFERENCE_AGENTS`, sized for ``task``'s actions."""
+
+    uses_images = False
+    action_repeat = None
+
+    def __init__(self, kind: str, task: str) -> None:
+        if kind not in REFERENCE_AGENTS:
+            raise EvalError(f"unknown reference agent {kind!r}; valid: "
+                            f"{', '.join(REFERENCE_AGENTS)}")
+        self.kind, self.task = kind, task
+        self.action_dim = TaskEnv(task).action_dim
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
+        if self.kind == "zero":
+            return np.zeros(self.action_dim, np.float32)
+        # torch's stream: evaluate() seeds it per episode, so every re-run draws the same.
+        return (torch.rand(self.action_dim) * 2.0 - 1.0).numpy()
+
+
+def is_reference(spec: str | os.PathLike[str]) -> bool:
+    """Whether an agent ``spec`` names a reference agent (a file of that name wins)."""
+    return str(spec) in REFERENCE_AGENTS and not Path(spec).exists()
+
+
+def load_agent(path: str | os.PathLike[str], device: str = "cpu", task: str | None = None
+               ) -> StateAgent | ImageAgent | ReferenceAgent:
+    """A teacher checkpoint becomes the state oracle, an agent bundle the image agent, and a
+    name from :data:`REFERENCE_AGENTS` that reference policy (it needs ``task``)."""
+    if is_reference(path):
+        if task is None:
+            raise EvalError(f"the reference agent {str(path)!r} needs a task; pass --task or "
+                            "a trained agent beside it")
+        return ReferenceAgent(str(path), task)
     checkpoint = read_checkpoint(path)
     if checkpoint.kind == "teacher":
         collect = checkpoint.extra.get("collect") or {}
@@ -248,7 +292,7 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
 EPISODE_COLUMNS = ("agent", "kind", "seed", "episode", "episode_seed", "return", "steps")
 
 
-def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | StateAgent | ImageAgent],
+def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                    config: EvalConfig,
                    seeds: Sequence[int], out: str | os.PathLike[str], videos: int = 0,
                    device: str = "cpu",
@@ -264,15 +308,14 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | StateAgent | Im
     if not seeds:
         raise EvalError("no seeds to evaluate")
     out = Path(out)
-    loaded = {name: a if isinstance(a, StateAgent | ImageAgent) else load_agent(a, device)
-               for name, a in agents.items()}
+    loaded = {name: load_agent(a, device, config.task) if isinstance(a, str | os.PathLike)
+              else a for name, a in agents.items()}
     for name, agent in loaded.items():
         check_compatible(agent, config, f"agent {name!r}")
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, agent in loaded.items():
-        kind = ("oracle" if isinstance(agent, StateAgent)
-                else agent.agent.info.get("baseline", "student"))
+        kind = agent_kind(agent)
         for seed in seeds:
             frames: dict[int, list[np.ndarray]] = {}
             record = functools.partial(_keep_frame, frames, videos) if videos else None
@@ -290,6 +333,15 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | StateAgent | Im
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     plot_returns(table, out / "returns.png", f"{config.task}, DR {config.dr}")
     return summary
+
+
+def agent_kind(agent: EvalAgent) -> str:
+    """``oracle``, ``reference``, ``student`` or the baseline's kind: the ``kind`` column."""
+    if isinstance(agent, StateAgent):
+        return "oracle"
+    if isinstance(agent, ReferenceAgent | ScriptedAgent):
+        return "reference"
+    return agent.agent.info.get("baseline", "student")
 
 
 def _keep_frame(frames: dict[int, list[np.ndarray]], videos: int, episode: int,
