@@ -83,6 +83,17 @@ def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> 
     assert best.extra["eval_return"] == pytest.approx(best_row["return_mean"])
     same = all(torch.equal(value, checkpoint.weights[key]) for key, value in best.weights.items())
     assert same == (best_row["frames"] == summary.frames)
+    # The floor beside every evaluation: the same evaluation episodes with every action 0.
+    env = TaskEnv(config.task, config.action_repeat, max_steps=config.max_steps)
+    floor = []
+    for index in range(config.eval_episodes):
+        step, total = env.reset(seed=derived_seed(seed, 1 << 30, index)), 0.0
+        while not step.is_last:
+            step = env.step(np.zeros(env.action_dim, np.float32))
+            total += step.reward
+        floor.append(total)
+    assert summary.zero_action_return == pytest.approx(np.mean(floor))
+    assert evals["zero_action_return"].tolist() == [summary.zero_action_return] * len(evals)
 
 
 def test_sigkilled_cli_run_resumes_without_duplicates_or_losses(tmp_path: Path) -> None:

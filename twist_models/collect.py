@@ -282,6 +282,9 @@ class CollectSummary:
     last_return: float | None
     best_eval_return: float | None
     last_eval_return: float | None
+    zero_action_return: float | None
+    """The evaluation episodes' mean return with every action 0: the floor (on
+    cartpole-balance a pole left alone spins through the top and scores ~750)."""
     dataset_bytes: int
     seconds: dict[str, float] = field(default_factory=dict)
 
@@ -392,6 +395,7 @@ class _Run:
         self.evaluated_at = -1
         self.train_metrics: dict[str, float] = {}
         self.eval_returns: list[float] = []
+        self.zero_action_return: float | None = None
         self.best_teacher_return: float | None = None
         self.last_return: float | None = None
         self.board = Board(folder)
@@ -455,6 +459,7 @@ class _Run:
             last_return=self.last_return,
             best_eval_return=max(self.eval_returns) if self.eval_returns else None,
             last_eval_return=self.eval_returns[-1] if self.eval_returns else None,
+            zero_action_return=self.zero_action_return,
             dataset_bytes=ShardReader(self.path).disk_bytes(),
             seconds={k: round(v, 2) for k, v in self.seconds.items()})
         (self.folder / "summary.json").write_text(json.dumps(summary.to_json(), indent=2))
@@ -518,24 +523,37 @@ class _Run:
         and was evaluated (at the first evaluation due after its last update)."""
         return self.config.learns_at(self.evaluated_at + 1)
 
+    def _zero_action_return(self) -> float:
+        """The evaluation episodes' mean return doing nothing (deterministic: computed once)."""
+        if self.zero_action_return is None:
+            zero = np.zeros(self.env.action_dim, np.float32)
+            self.zero_action_return = float(np.mean(
+                [self._evaluation_episode(j, lambda step: zero)
+                 for j in range(self.config.eval_episodes)]))
+        return self.zero_action_return
+
     def _evaluate(self) -> None:
         c = self.config
         tick = time.perf_counter()
         returns = [self._evaluation_episode(j) for j in range(c.eval_episodes)]
+        floor = self._zero_action_return()
         self.eval_returns.append(float(np.mean(returns)))
         self.evaluated_at = self.frames
         while self.next_eval <= self.frames:
             self.next_eval += c.eval_every
         row = {"frames": self.frames, "updates": int(self.teacher.step),
                "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
-               "episodes": len(returns), "wall_s": round(sum(self.seconds.values()), 1)}
+               "episodes": len(returns), "wall_s": round(sum(self.seconds.values()), 1),
+               "zero_action_return": floor}
         append_csv(self.folder / "eval.csv", row, tuple(row))
         self.board.scalar("eval/return", row["return_mean"], self.frames)
         plot_learning_curves({f"{self.path.name} (seed {c.seed})": self.folder / "eval.csv"},
                              self.folder / "learning-curve.png",
-                             f"{c.task}, {c.model} teacher on state, mode action")
+                             f"{c.task}, {c.model} teacher on state, mode action",
+                             {"zero actions": floor})
         self.seconds["eval"] += time.perf_counter() - tick
-        log.info("eval at %d frames: return %.1f", self.frames, self.eval_returns[-1])
+        log.info("eval at %d frames: return %.1f (zero actions: %.1f)", self.frames,
+                 self.eval_returns[-1], floor)
         teacher_acted = self.frames >= c.prefill_frames
         if teacher_acted and (self.best_teacher_return is None
                               or row["return_mean"] > self.best_teacher_return):
@@ -554,11 +572,14 @@ class _Run:
     def _counters(self) -> dict[str, int]:
         return {"frames": self.frames, "episodes": self.writer.n_episodes}
 
-    def _evaluation_episode(self, index: int) -> float:
-        """Return of one episode of the teacher's mode action on states, nominal dynamics."""
-        policy = (teacher_policy(self.teacher, self.env.action_dim, self.device, explore=False)
-                  if self.frames >= self.config.prefill_frames
-                  else random_policy(self.env.action_dim, index))
+    def _evaluation_episode(self, index: int, policy: Policy | None = None) -> float:
+        """Return of evaluation episode ``index`` (nominal dynamics) of ``policy``, by default
+        the teacher's mode action on states (random actions before it first acts)."""
+        if policy is None:
+            policy = (teacher_policy(self.teacher, self.env.action_dim, self.device,
+                                     explore=False)
+                      if self.frames >= self.config.prefill_frames
+                      else random_policy(self.env.action_dim, index))
         step = self.eval_env.reset(seed=derived_seed(self.seed, 1 << 30, index),
                                    dynamics=Dynamics())
         total = 0.0
