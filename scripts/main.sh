@@ -3,7 +3,8 @@
 # the `quick` preset while writing the matching dataset D (K=2 domain-randomised views per
 # step), then inspect, verify (including a pixel-exact re-render), re-render under held-out
 # DR, export, and draw a contact sheet; then distil the vision student from D offline and
-# evaluate teacher (on states) and student (on images) on held-out backgrounds.
+# evaluate teacher (on states), student (on images) and the zero-action floor on held-out
+# backgrounds.
 # PRESET=tiny gives a smoke run of seconds; --resume continues an interrupted run.
 set -euo pipefail
 . "$(dirname "$0")/bootstrap.sh"
@@ -30,5 +31,6 @@ cp "$OUT/student/latent-agreement.png" "$OUT/latent-agreement.png"
 EVAL=(--episodes "${EVAL_EPISODES:-10}")
 if [[ "$PRESET" == tiny ]]; then EVAL=(--episodes 2 --max-steps 50); fi
 twist-eval --agent "oracle=$OUT/dataset/collect/collect-000/teacher.pt" \
-           --agent "student=$OUT/student/agent.pt" --dr heldout --out "$OUT/eval" "${EVAL[@]}"
+           --agent "student=$OUT/student/agent.pt" --agent zero --dr heldout \
+           --out "$OUT/eval" "${EVAL[@]}"
 echo "main job done: results in $OUT"
