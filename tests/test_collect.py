@@ -255,6 +255,35 @@ def test_a_finished_run_extends_d_with_its_frozen_teacher(tmp_path: Path) -> Non
         collect_preset("tiny", learn_frames=100)
 
 
+def test_freeze_best_lets_the_best_evaluated_teacher_act_once_learning_ends(
+        tmp_path: Path) -> None:
+    config = collect_preset("tiny", frames=600, learn_frames=300, freeze_best=True,
+                            eval_every=100)
+    summary = collect(tmp_path, config)
+    runs = tmp_path / "collect" / "collect-000"
+    evals = pd.read_csv(runs / "eval.csv")
+    assert evals["frames"].tolist() == [100, 200, 300]  # a frozen teacher is not re-evaluated
+    # The acting teacher is the first best of the evaluations after the prefill (the first
+    # one's teacher never acted: frame 100 is where it starts).
+    acted = evals[evals["frames"] >= config.prefill_frames]
+    best_row = acted.loc[acted["return_mean"].idxmax()]
+    # With these seeds the 200-frame teacher beats the last learned one (300), so the check
+    # below tells freezing the best from freezing the last.
+    assert best_row["frames"] < 300
+    final = read_checkpoint(runs / "teacher.pt", kind="teacher")
+    best = read_checkpoint(runs / BEST_TEACHER, kind="teacher")
+    assert best.counters["frames"] == best_row["frames"] == summary.frozen_from["frames"]
+    assert all(torch.equal(value, final.weights[key]) for key, value in best.weights.items())
+    frozen = config.updates_due(int(best_row["frames"]))
+    assert summary.frozen_from["updates"] == summary.updates == frozen
+    dataset = open_dataset(tmp_path)
+    steps = [dataset.episode_info(i).teacher_step for i in range(dataset.n_episodes)]
+    assert steps[3:] == [frozen] * 3  # the episodes from 300 frames on
+    assert steps[1:3] == [config.updates_due(100), config.updates_due(200)]
+    with pytest.raises(ConfigError, match="freeze_best needs learn_frames"):
+        collect_preset("tiny", freeze_best=True)
+
+
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:
     done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--task", "nope"],
                           capture_output=True, text=True)

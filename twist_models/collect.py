@@ -98,6 +98,11 @@ class CollectConfig:
     """Frames after which the teacher stops learning and, frozen, goes on acting (sampling its
     actions) until ``frames``: more of D at ~0.7 s per ``quick`` episode instead of the 13-25 s
     of updates each costs while the teacher learns; None: it learns until ``frames``."""
+    freeze_best: bool = False
+    """At ``learn_frames`` the teacher of the best evaluation so far (``best.pt``), not the
+    last one, acts frozen for the rest of D: a Dreamer's evaluation return swings from one
+    evaluation to the next (993 then 817 in one cartpole run), and the frozen teacher is the
+    one whose actor the student will serve."""
     views: int = 2
     """K randomised renders per step."""
     image_size: int = 64
@@ -176,6 +181,9 @@ class CollectConfig:
         if self.learn_frames is not None and self.learn_frames <= self.prefill_frames:
             raise ConfigError(f"learn_frames {self.learn_frames} ends learning before the "
                               f"teacher first acts (prefill_frames {self.prefill_frames})")
+        if self.freeze_best and (self.learn_frames is None or self.eval_episodes < 1):
+            raise ConfigError("freeze_best needs learn_frames and eval_episodes >= 1 (it "
+                              "freezes the best evaluated teacher when learning ends)")
         if self.max_steps is not None and self.max_steps < self.batch_length:
             raise ConfigError(f"max_steps {self.max_steps} is shorter than one replay window "
                               f"(batch_length {self.batch_length})")
@@ -285,6 +293,9 @@ class CollectSummary:
     zero_action_return: float | None
     """The evaluation episodes' mean return with every action 0: the floor (on
     cartpole-balance a pole left alone spins through the top and scores ~750)."""
+    frozen_from: dict[str, Any] | None
+    """With ``freeze_best``: frames, updates and evaluation return of the teacher that acts
+    frozen (and is saved as ``teacher.pt``)."""
     dataset_bytes: int
     seconds: dict[str, float] = field(default_factory=dict)
 
@@ -371,8 +382,8 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     stored = folder / "config.json"
     if resume and stored.exists():
         before = json.loads(stored.read_text())["collect"]
-        refuse_resume(resume_conflicts(before, config, ("frames", "learn_frames")),
-                      CollectError, "--steps and --set learn_frames=N")
+        refuse_resume(resume_conflicts(before, config, ("frames", "learn_frames", "freeze_best")),
+                      CollectError, "--steps, --set learn_frames=N and --set freeze_best=B")
 
 
 class _Run:
@@ -396,6 +407,7 @@ class _Run:
         self.train_metrics: dict[str, float] = {}
         self.eval_returns: list[float] = []
         self.zero_action_return: float | None = None
+        self.frozen_from: dict[str, Any] | None = None
         self.best_teacher_return: float | None = None
         self.last_return: float | None = None
         self.board = Board(folder)
@@ -421,6 +433,7 @@ class _Run:
             self.seconds.update(extra.get("seconds", {}))
             self.eval_returns = extra.get("eval_returns", [])
             self.best_teacher_return = extra.get("best_teacher_return")
+            self.frozen_from = extra.get("frozen_from")
             log.info("resumed the teacher at update %d from %s", int(self.teacher.step), latest)
         else:
             torch.manual_seed(self.seed)
@@ -438,6 +451,7 @@ class _Run:
         started, start_frames = time.perf_counter(), self.frames
         self._train()  # updates owed by episodes committed after the last checkpoint
         while self.frames < c.frames:
+            self._freeze_best_if_due()
             episode_return = self._collect_episode()
             self._train()
             if self.frames >= self.next_eval and self._changed_since_evaluation():
@@ -459,7 +473,7 @@ class _Run:
             last_return=self.last_return,
             best_eval_return=max(self.eval_returns) if self.eval_returns else None,
             last_eval_return=self.eval_returns[-1] if self.eval_returns else None,
-            zero_action_return=self.zero_action_return,
+            zero_action_return=self.zero_action_return, frozen_from=self.frozen_from,
             dataset_bytes=ShardReader(self.path).disk_bytes(),
             seconds={k: round(v, 2) for k, v in self.seconds.items()})
         (self.folder / "summary.json").write_text(json.dumps(summary.to_json(), indent=2))
@@ -494,10 +508,30 @@ class _Run:
         self.last_return = float(episode.reward.sum())
         return self.last_return
 
+    def _freeze_best_if_due(self) -> None:
+        """With ``freeze_best``, once learning is over: evaluate the last teacher if it has
+        not been, then let ``best.pt`` act from here on (a resumed run repeats this harmlessly
+        until its first frozen episode is checkpointed)."""
+        c = self.config
+        if not c.freeze_best or self.frozen_from is not None or c.learns_at(self.frames + 1):
+            return
+        if self._changed_since_evaluation():
+            self._evaluate()
+        teacher, checkpoint = load_teacher(self.folder / BEST_TEACHER, self.env.state_dim,
+                                           self.env.action_dim)
+        self.teacher = teacher.to_device(self.device)
+        self.frozen_from = {"frames": checkpoint.counters["frames"],
+                            "updates": int(teacher.step),
+                            "eval_return": checkpoint.extra["eval_return"]}
+        log.info("learning over at %d frames: the teacher of %d frames (evaluation return "
+                 "%.1f) acts frozen from here on", self.frames, self.frozen_from["frames"],
+                 self.frozen_from["eval_return"])
+
     def _train(self) -> None:
         c = self.config
         due = c.updates_due(self.frames)
-        if int(self.teacher.step) >= due:
+        # A best teacher put in place has fewer updates than are due; it is frozen all the same.
+        if int(self.teacher.step) >= due or self.frozen_from is not None:
             return
         tick = time.perf_counter()
         if self.replay is None:
@@ -601,7 +635,8 @@ class _Run:
                  "next_eval": self.next_eval, "next_snapshot": self.next_snapshot,
                  "evaluated_at": self.evaluated_at, "seconds": self.seconds,
                  "eval_returns": self.eval_returns,
-                 "best_teacher_return": self.best_teacher_return}
+                 "best_teacher_return": self.best_teacher_return,
+                 "frozen_from": self.frozen_from}
         counters = self._counters()
         latest = save_teacher(self.folder / "latest.pt", self.teacher, counters, extra)
         if snapshot:
