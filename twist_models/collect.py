@@ -226,12 +226,14 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # 4 frames moves the state 2x more per model step and halves the per-frame cost; gamma
     # 0.98 per agent step keeps DreamerV2's horizon in seconds; 2,000 world-model updates on
     # 10K random frames come before behaviour learning; a 12x faster actor (1e-3) and a
-    # DreamerV3 critic (two-hot, normalised returns) fit the ~1,100 behaviour updates that
-    # the main job's 22 minutes allow; 15-step open-loop overshooting trains what imagination uses.
-    # The teacher learns for 28K frames, then acts frozen to 300K (~3 minutes): the student
+    # DreamerV3 critic (two-hot, normalised returns) fit the few thousand behaviour updates that
+    # the main job's budget allows; 15-step open-loop overshooting trains what imagination uses.
+    # The teacher learns for 60K frames (at 28K it had not learned to balance: it scored
+    # below the zero-action floor of ~750; one run reached 993 at 56K; README, "Tenth
+    # session"), then the best evaluated teacher acts frozen to 300K (~3 minutes): the student
     # distilled from 300 episodes tracks the teacher's h far better than from 28 (README,
     # "Ninth session").
-    "quick": CollectConfig(model="quick", frames=300_000, learn_frames=28_000,
+    "quick": CollectConfig(model="quick", frames=300_000, learn_frames=60_000, freeze_best=True,
                            eval_every=4_000, eval_episodes=3,
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,
                            pretrain_updates=2_000, behaviour_from=2_000, train_every=4,
