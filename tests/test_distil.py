@@ -19,6 +19,7 @@ import pandas as pd
 import pytest
 import torch
 
+from twist_data.errors import ConfigError
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
 from twist_models.config import student_preset, teacher_preset, to_json
@@ -374,3 +375,20 @@ def test_a_run_stored_before_a_config_field_existed_resumes_under_its_default() 
     stored["length"] = 9
     assert resume_conflicts(stored, config, ("steps",)) == [
         f"length was 9, now {config.length}"]
+
+
+def test_frozen_dynamics_train_only_the_encoder_and_posterior(distil_inputs, tmp_path) -> None:
+    dataset, teacher_path = distil_inputs
+    rssm = load_teacher(teacher_path)[0].world_model.rssm.state_dict()
+
+    def changed(freeze: bool) -> set[str]:
+        config = distil_preset("tiny", steps=4, freeze_dynamics=freeze)
+        summary = distil(dataset, tmp_path / str(freeze), config, teacher=teacher_path)
+        student = load_student(summary.student)[0].rssm.state_dict()
+        return {k.split(".")[0] for k, v in student.items()
+                if v.shape == rssm[k].shape and not torch.equal(v, rssm[k])}
+
+    assert changed(freeze=True) == {"obs_out"}  # the posterior head trains, nothing else
+    assert {"img_in", "gru", "img_out"} <= changed(freeze=False)
+    with pytest.raises(ConfigError, match="needs copy_dynamics"):
+        distil_preset("tiny", freeze_dynamics=True, copy_dynamics=False)

@@ -75,7 +75,7 @@ from twist_models.runlog import (
     refuse_resume,
     resume_conflicts,
 )
-from twist_models.student import Student, copy_teacher_dynamics
+from twist_models.student import Student, copy_teacher_dynamics, freeze_dynamics
 from twist_models.teacher import Teacher, find_teacher, load_teacher
 
 log = logging.getLogger(__name__)
@@ -117,6 +117,10 @@ class DistilConfig:
     """Teacher and student sample their latents from the same uniform draws."""
     copy_dynamics: bool = True
     """Start the student's RSSM from the teacher's (False: from scratch, as the paper)."""
+    freeze_dynamics: bool = False
+    """Keep the copied transition (the GRU, its input layer and the prior head) fixed, so
+    only the encoder and the posterior head learn: the student's h is then the teacher's
+    recurrence run on the student's z (needs ``copy_dynamics``; not in the paper)."""
     h_weight: float = 1.0
     """Weight of ||h_teacher - h_student||^2 on data (Eq. 3)."""
     prior_weight: float = 1.0
@@ -161,6 +165,9 @@ class DistilConfig:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         if self.view is not None and self.view < 0:
             raise ConfigError(f"view must be >= 0, got {self.view}")
+        if self.freeze_dynamics and not self.copy_dynamics:
+            raise ConfigError("freeze_dynamics keeps the teacher's copied dynamics fixed; it "
+                              "needs copy_dynamics")
 
     def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
         return SamplerConfig(length=self.length, batch_size=batch_size or self.batch_size,
@@ -445,6 +452,8 @@ class _Run:
                 copy_teacher_dynamics(self.student, self.teacher.world_model.rssm)
             # Ranks start from one student but draw their own latent samples and noise.
             torch.manual_seed(derived_seed(config.seed, 5, rank))
+        if config.freeze_dynamics:
+            freeze_dynamics(self.student)
         self.student.to(device)
         move_optimiser_state(self.optimiser, device)
         self.objective: nn.Module = Distillation(self.student, self.teacher, config)

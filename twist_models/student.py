@@ -48,3 +48,10 @@ def copy_teacher_dynamics(student: Student, teacher_rssm: RSSM) -> None:
     student_in.weight[:, :deter].copy_(teacher_in.weight[:, :deter])
     student_in.bias.copy_(teacher_in.bias)
     student.rssm.obs_out[2].load_state_dict(teacher_rssm.obs_out[2].state_dict())
+
+
+def freeze_dynamics(student: Student) -> None:
+    """Stop training the student's transition: the GRU, its input layer and the prior head
+    (what :func:`copy_teacher_dynamics` copies whole); the encoder and posterior head train."""
+    for name in ("img_in", "gru", "img_out"):
+        getattr(student.rssm, name).requires_grad_(False)
