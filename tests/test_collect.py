@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -253,6 +254,23 @@ def test_a_finished_run_extends_d_with_its_frozen_teacher(tmp_path: Path) -> Non
     assert sorted(p.name for p in runs.glob("teacher-*.pt")) == ["teacher-00000200.pt"]
     with pytest.raises(ConfigError, match="learn_frames 100 ends learning before"):
         collect_preset("tiny", learn_frames=100)
+
+
+def test_frozen_noise_perturbs_only_the_frozen_teachers_actions(tmp_path: Path) -> None:
+    learned = collect_preset("tiny", frames=200)
+    collect(tmp_path / "a", learned)
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    clipped = {}
+    for name, noise in (("a", 0.0), ("b", 1.0)):
+        extended = dataclasses.replace(learned, frames=500, learn_frames=200, frozen_noise=noise)
+        collect(tmp_path / name, extended, resume=True)
+        dataset = open_dataset(tmp_path / name)
+        frozen = np.concatenate([dataset.episode(i).action[1:] for i in range(2, 5)])
+        # A tanh-squashed sample is never exactly +-1; noise clipped to the bounds often is.
+        clipped[name] = float(np.mean(np.abs(frozen) == 1.0))
+    assert clipped["a"] == 0.0 and clipped["b"] > 0.2
+    with pytest.raises(ConfigError, match="frozen_noise perturbs"):
+        collect_preset("tiny", frozen_noise=0.5)
 
 
 def test_freeze_best_lets_the_best_evaluated_teacher_act_once_learning_ends(

@@ -103,6 +103,11 @@ class CollectConfig:
     last one, acts frozen for the rest of D: a Dreamer's evaluation return swings from one
     evaluation to the next (993 then 817 in one cartpole run), and the frozen teacher is the
     one whose actor the student will serve."""
+    frozen_noise: float = 0.0
+    """Std of Gaussian noise added to the frozen teacher's actions (after ``learn_frames``;
+    clipped to [-1, 1]; D records the executed action): states off the teacher's own path
+    from which it recovers, for the student to learn from, as DART (Laskey et al., 2017)
+    injects noise into an expert's demonstrations; 0: none."""
     views: int = 2
     """K randomised renders per step."""
     image_size: int = 64
@@ -177,10 +182,13 @@ class CollectConfig:
         require_positive(self, "frames", "views", "image_size", "action_repeat", "train_every",
                          "batch_size", "batch_length", "eval_every", "snapshot_every")
         require_non_negative(self, "prefill_frames", "pretrain_updates", "eval_episodes",
-                             "behaviour_from")
+                             "behaviour_from", "frozen_noise")
         if self.learn_frames is not None and self.learn_frames <= self.prefill_frames:
             raise ConfigError(f"learn_frames {self.learn_frames} ends learning before the "
                               f"teacher first acts (prefill_frames {self.prefill_frames})")
+        if self.frozen_noise and self.learn_frames is None:
+            raise ConfigError("frozen_noise perturbs the frozen teacher's actions; it needs "
+                              "learn_frames")
         if self.freeze_best and (self.learn_frames is None or self.eval_episodes < 1):
             raise ConfigError("freeze_best needs learn_frames and eval_episodes >= 1 (it "
                               "freezes the best evaluated teacher when learning ends)")
@@ -308,9 +316,11 @@ class CollectSummary:
 
 # -- the collector ----------------------------------------------------------------------------
 def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str = "cpu",
-                   explore: bool = True) -> Policy:
+                   explore: bool = True, noise: float = 0.0) -> Policy:
     """The teacher as a rollout policy on privileged state: it filters its latent across the
-    steps of an episode (reset at ``is_first``) and returns actions as numpy arrays."""
+    steps of an episode (reset at ``is_first``) and returns actions as numpy arrays, with
+    Gaussian noise of std ``noise`` added (clipped to [-1, 1]; the filter sees the action
+    taken)."""
     latent = None
     previous = torch.zeros(1, action_dim, device=device)
 
@@ -321,6 +331,8 @@ def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str
         # check inside the RSSM would cost training a device sync per step instead.
         first = torch.tensor([True], device=device) if step.is_first else None
         action, latent = teacher.policy(state, latent, previous, first, explore=explore)
+        if noise:
+            action = (action + noise * torch.randn_like(action)).clamp(-1.0, 1.0)
         previous = action
         return action[0].cpu().numpy()
 
@@ -384,8 +396,9 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     stored = folder / "config.json"
     if resume and stored.exists():
         before = json.loads(stored.read_text())["collect"]
-        refuse_resume(resume_conflicts(before, config, ("frames", "learn_frames", "freeze_best")),
-                      CollectError, "--steps, --set learn_frames=N and --set freeze_best=B")
+        refuse_resume(resume_conflicts(before, config, ("frames", "learn_frames", "freeze_best",
+                                                           "frozen_noise")),
+                      CollectError, "--steps and --set learn_frames, freeze_best, frozen_noise")
 
 
 class _Run:
@@ -488,7 +501,9 @@ class _Run:
         if frames < c.prefill_frames:
             policy, name, step = random_policy(self.env.action_dim, episode_seed), "random", -1
         else:
-            policy = teacher_policy(self.teacher, self.env.action_dim, self.device)
+            frozen = not c.learns_at(frames + 1)
+            policy = teacher_policy(self.teacher, self.env.action_dim, self.device,
+                                    noise=c.frozen_noise if frozen else 0.0)
             name, step = "teacher", int(self.teacher.step)
         with single_threaded():
             episode, info = record_episode(self.env, self.renderer, self.dr_sampler, policy,
