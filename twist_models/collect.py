@@ -449,7 +449,9 @@ class _Run:
             self.eval_returns = extra.get("eval_returns", [])
             self.best_teacher_return = extra.get("best_teacher_return")
             self.frozen_from = extra.get("frozen_from")
-            log.info("resumed the teacher at update %d from %s", int(self.teacher.step), latest)
+            log.info("resumed the teacher at update %d from %s; D holds %d episodes (%d "
+                     "frames)", int(self.teacher.step), latest, self.writer.n_episodes,
+                     self.frames)
         else:
             torch.manual_seed(self.seed)
             self.teacher = Teacher(teacher_config)
