@@ -213,6 +213,10 @@ class CollectConfig:
         """Whether the teacher still learns (or has just learned) once ``frames`` are in D."""
         return self.learn_frames is None or frames <= self.learn_frames
 
+    def acts_frozen(self, frames: int) -> bool:
+        """Whether the episode that starts once ``frames`` are in D is the frozen teacher's."""
+        return not self.learns_at(frames + 1)
+
     def updates_due(self, frames: int) -> int:
         """Teacher updates owed once ``frames`` frames are in D (DreamerV2's train ratio); none
         are owed for frames past ``learn_frames``."""
@@ -503,9 +507,8 @@ class _Run:
         if frames < c.prefill_frames:
             policy, name, step = random_policy(self.env.action_dim, episode_seed), "random", -1
         else:
-            frozen = not c.learns_at(frames + 1)
             policy = teacher_policy(self.teacher, self.env.action_dim, self.device,
-                                    noise=c.frozen_noise if frozen else 0.0)
+                                    noise=c.frozen_noise if c.acts_frozen(frames) else 0.0)
             name, step = "teacher", int(self.teacher.step)
         with single_threaded():
             episode, info = record_episode(self.env, self.renderer, self.dr_sampler, policy,
@@ -532,7 +535,7 @@ class _Run:
         not been, then let ``best.pt`` act from here on (a resumed run repeats this harmlessly
         until its first frozen episode is checkpointed)."""
         c = self.config
-        if not c.freeze_best or self.frozen_from is not None or c.learns_at(self.frames + 1):
+        if not c.freeze_best or self.frozen_from is not None or not c.acts_frozen(self.frames):
             return
         if self._changed_since_evaluation():
             self._evaluate()

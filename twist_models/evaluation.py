@@ -132,7 +132,7 @@ class ImageAgent:
 
 
 class ScriptedAgent:
-    """A function of the privileged step (tests, the random baseline)."""
+    """A function of the privileged step (tests, the reference agents)."""
 
     uses_images = False
 
@@ -157,27 +157,16 @@ REFERENCE_AGENTS = {
 }
 
 
-class ReferenceAgent:
-    """A reference policy from :data:`REFERENCE_AGENTS`, sized for ``task``'s actions."""
-
-    uses_images = False
-    action_repeat = None
-
-    def __init__(self, kind: str, task: str) -> None:
-        if kind not in REFERENCE_AGENTS:
-            raise EvalError(f"unknown reference agent {kind!r}; valid: "
-                            f"{', '.join(REFERENCE_AGENTS)}")
-        self.kind, self.task = kind, task
-        self.action_dim = TaskEnv(task).action_dim
-
-    def reset(self) -> None:
-        pass
-
-    def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
-        if self.kind == "zero":
-            return np.zeros(self.action_dim, np.float32)
-        # torch's stream: evaluate() seeds it per episode, so every re-run draws the same.
-        return (torch.rand(self.action_dim) * 2.0 - 1.0).numpy()
+def reference_agent(kind: str, task: str) -> ScriptedAgent:
+    """The reference policy ``kind`` of :data:`REFERENCE_AGENTS`, sized for ``task``."""
+    if kind not in REFERENCE_AGENTS:
+        raise EvalError(f"unknown reference agent {kind!r}; valid: {', '.join(REFERENCE_AGENTS)}")
+    action_dim = TaskEnv(task).action_dim
+    if kind == "zero":
+        zero = np.zeros(action_dim, np.float32)
+        return ScriptedAgent(lambda step: zero, task)
+    # torch's stream: evaluate() seeds it per episode, so every re-run draws the same.
+    return ScriptedAgent(lambda step: (torch.rand(action_dim) * 2.0 - 1.0).numpy(), task)
 
 
 def is_reference(spec: str | os.PathLike[str]) -> bool:
@@ -186,14 +175,14 @@ def is_reference(spec: str | os.PathLike[str]) -> bool:
 
 
 def load_agent(path: str | os.PathLike[str], device: str = "cpu", task: str | None = None
-               ) -> StateAgent | ImageAgent | ReferenceAgent:
+               ) -> StateAgent | ImageAgent | ScriptedAgent:
     """A teacher checkpoint becomes the state oracle, an agent bundle the image agent, and a
     name from :data:`REFERENCE_AGENTS` that reference policy (it needs ``task``)."""
     if is_reference(path):
         if task is None:
             raise EvalError(f"the reference agent {str(path)!r} needs a task; pass --task or "
                             "a trained agent beside it")
-        return ReferenceAgent(str(path), task)
+        return reference_agent(str(path), task)
     checkpoint = read_checkpoint(path)
     if checkpoint.kind == "teacher":
         collect = checkpoint.extra.get("collect") or {}
@@ -340,7 +329,7 @@ def agent_kind(agent: EvalAgent) -> str:
     """``oracle``, ``reference``, ``student`` or the baseline's kind: the ``kind`` column."""
     if isinstance(agent, StateAgent):
         return "oracle"
-    if isinstance(agent, ReferenceAgent | ScriptedAgent):
+    if isinstance(agent, ScriptedAgent):
         return "reference"
     return agent.agent.info.get("baseline", "student")
 
