@@ -76,7 +76,7 @@ def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, age
         rows["again_z"].append(differing_classes(acting, again))
         rows["student_z"].append(differing_classes(acting, mine))
         # Every filter continues from the action that was executed.
-        student = AgentState(mine, action)
+        student = dataclasses.replace(student, action=action)
         previous = action
         step = env.step(action[0].numpy())
     h = np.array(rows["h"])

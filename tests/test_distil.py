@@ -33,7 +33,7 @@ from twist_models.distill import (
 )
 from twist_models.losses import distillation_loss, imagined_distillation_loss
 from twist_models.runlog import append_csv, resume_conflicts
-from twist_models.student import Student, copy_teacher_dynamics
+from twist_models.student import Student, copy_teacher_dynamics, stack_frames, step_frames
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 
 # Images are deterministic drawings of the state (plus randomised backgrounds), so the
@@ -392,3 +392,46 @@ def test_frozen_dynamics_train_only_the_encoder_and_posterior(distil_inputs, tmp
     assert {"img_in", "gru", "img_out"} <= changed(freeze=False)
     with pytest.raises(ConfigError, match="needs copy_dynamics"):
         distil_preset("tiny", freeze_dynamics=True, copy_dynamics=False)
+
+
+def test_stacked_frames_repeat_at_episode_starts_and_agree_step_by_step() -> None:
+    embed = torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0]).reshape(1, 5, 1)
+    is_first = torch.tensor([[True, False, True, False, False]])
+    # Most recent first; before an episode's first step its own image stands in.
+    expected = [[1, 1, 1], [2, 1, 1], [3, 3, 3], [4, 3, 3], [5, 4, 3]]
+    assert stack_frames(embed, is_first, 3)[0].tolist() == expected
+    assert torch.equal(stack_frames(embed, is_first, 1), embed)
+
+    sequence = torch.randn(2, 6, 4)
+    starts = torch.tensor([[True, False, False, True, False, False]] * 2)
+    history, steps = None, []
+    for t in range(6):
+        if starts[0, t]:
+            history = None
+        stacked, history = step_frames(sequence[:, t], history, 3)
+        steps.append(stacked)
+    torch.testing.assert_close(torch.stack(steps, 1), stack_frames(sequence, starts, 3))
+
+
+@pytest.mark.parametrize("frames", [1, 3])
+def test_the_agent_acting_step_by_step_filters_as_the_student_does_on_windows(frames) -> None:
+    torch.manual_seed(0)
+    teacher = Teacher(teacher_preset("tiny", 5, 1))
+    student = Student(student_preset("tiny", teacher.config, image_size=64, frames=frames))
+    agent = Agent.from_models(student, teacher).eval()
+    images = torch.randint(0, 256, (1, 5, 64, 64, 3), dtype=torch.uint8)
+    torch.manual_seed(1)  # both paths draw their latent samples in the same order
+    state, logits, actions = None, [], []
+    for t in range(5):
+        action, state = agent.act(images[0, t].numpy(), state)
+        logits.append(state.latent["logits"])
+        actions.append(torch.as_tensor(action))
+    # A window's action at step t is the one taken before it (zeroed at the first step).
+    previous = torch.stack([torch.zeros(1), *actions[:-1]])[None].float()
+    torch.manual_seed(1)
+    is_first = torch.tensor([[True, False, False, False, False]])
+    with torch.no_grad():
+        post, _ = student.observe(images, previous, is_first)
+    torch.testing.assert_close(torch.cat(logits), post["logits"][0])
+    assert student.rssm.obs_out[0].in_features == (
+        student.config.rssm.deter + frames * student.encoder.out_dim)

@@ -20,7 +20,7 @@ from twist_models.actor_critic import Actor
 from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
 from twist_models.config import AgentConfig, from_json
 from twist_models.rssm import State
-from twist_models.student import Student
+from twist_models.student import Student, step_frames
 from twist_models.teacher import Teacher
 
 
@@ -32,6 +32,9 @@ class AgentState:
     """The student's posterior state {k: [N, ...]}."""
     action: torch.Tensor
     """The previous action [N, A]."""
+    frames: torch.Tensor | None = None
+    """Embeddings of the previous ``frames - 1`` images, most recent first
+    [N, frames - 1, E]; None before the episode's first image."""
 
 
 class Agent(nn.Module):
@@ -76,11 +79,13 @@ class Agent(nn.Module):
         if state is None:
             state = AgentState(rssm.initial(n, self.device),
                                torch.zeros(n, self.config.student.action_dim, device=self.device))
-        latent = rssm.post_step(state.latent, state.action, self.student.encoder(image), first)
+        embed, history = step_frames(self.student.encoder(image), state.frames,
+                                     self.config.student.frames)
+        latent = rssm.post_step(state.latent, state.action, embed, first)
         dist = self.actor(rssm.feature(latent))
         action = (dist.rsample() if explore else dist.mode).clamp(-1.0, 1.0)
         out = action.cpu().numpy()
-        return (out[0] if single else out), AgentState(latent, action)
+        return (out[0] if single else out), AgentState(latent, action, history)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the bundle (weights, configs and ``info``) atomically."""

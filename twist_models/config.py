@@ -257,9 +257,12 @@ class StudentConfig:
     """Length of the action vector."""
     cnn: CNNConfig = field(default_factory=CNNConfig)
     """Image encoder (its image_size is the dataset's)."""
+    frames: int = 1
+    """Images the posterior reads per step: the current one and the ``frames - 1`` before it,
+    each encoded alone by the CNN (1: the paper's single image)."""
 
     def __post_init__(self) -> None:
-        require_positive(self, "action_dim")
+        require_positive(self, "action_dim", "frames")
 
 
 @dataclass(frozen=True)
@@ -317,13 +320,15 @@ def image_dreamer_preset(name: str, state_dim: int, action_dim: int, image_size:
                          actor_critic=ActorCriticConfig(**_AC_PRESETS[name]))
 
 
-def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64) -> StudentConfig:
-    """The student of size preset ``name`` (its CNN) for ``teacher``, whose RSSM it copies."""
+def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
+                   frames: int = 1) -> StudentConfig:
+    """The student of size preset ``name`` (its CNN) for ``teacher``, whose RSSM it copies,
+    reading ``frames`` images per step."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
     cnn = dataclasses.replace(PRESETS[name].get("cnn", CNNConfig()), image_size=image_size)
     return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,
-                         cnn=cnn)
+                         cnn=cnn, frames=frames)
 
 
 def to_json(config: Any) -> dict[str, Any]:

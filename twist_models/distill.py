@@ -132,6 +132,9 @@ class DistilConfig:
     action_weight: float = 0.0
     """Weight of the action-matching term: the teacher's actor on the student's posterior
     against it on the teacher's (not in the paper; 0: the paper's objective)."""
+    frames: int = 1
+    """Images the student's posterior reads per step, each encoded alone: the current one and
+    the ``frames - 1`` before it (1: the paper's single image; 2 shows it motion)."""
     view: int | None = None
     """Camera view shown at every step; None: a random one of the K per step."""
     lr: float = 3e-4
@@ -157,7 +160,7 @@ class DistilConfig:
         if self.student not in PRESETS:
             raise ConfigError(f"unknown student preset {self.student!r}; valid presets are: "
                               f"{', '.join(PRESETS)}")
-        require_positive(self, "steps", "batch_size", "length", "horizon", "lr",
+        require_positive(self, "steps", "batch_size", "length", "horizon", "frames", "lr",
                          "heldout_windows", "eval_every", "checkpoint_every", "snapshot_every")
         require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
                              "post_weight", "imagined_weight", "action_weight", "workers")
@@ -364,7 +367,8 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     data = _open_inputs(dataset_path, config)
     teacher_path = Path(teacher) if teacher is not None else find_teacher(dataset_path)
     teacher_model, _ = load_teacher(teacher_path, data.spec.state_dim, data.spec.action_dim)
-    student_config = student_preset(config.student, teacher_model.config, data.spec.image_height)
+    student_config = student_preset(config.student, teacher_model.config, data.spec.image_height,
+                                    config.frames)
     _check_output(out, config, student_config, resume)
     rank, world = _rank_and_world()
     run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,
@@ -407,7 +411,7 @@ def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resum
     if resume and stored.exists():
         before = json.loads(stored.read_text())
         conflicts = resume_conflicts(before["distil"], config, ("steps",))
-        if before.get("student") != to_json(student):
+        if from_json(StudentConfig, before.get("student", {})) != student:
             conflicts.append("the student's sizes differ")
         refuse_resume(conflicts, DistilError)
 

@@ -20,13 +20,42 @@ class Student(nn.Module):
         super().__init__()
         self.config = config
         self.encoder = ImageEncoder(config.cnn)
-        self.rssm = RSSM(config.rssm, config.action_dim, self.encoder.out_dim)
+        self.rssm = RSSM(config.rssm, config.action_dim, self.encoder.out_dim * config.frames)
 
     def observe(self, image: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
                 uniform: torch.Tensor | None = None) -> tuple[State, State]:
         """Filter windows of images: image uint8 [B, T, H, W, 3], action [B, T, A],
         is_first [B, T] -> (posterior, prior) states {k: [B, T, ...]}."""
-        return self.rssm.observe(self.encoder(image), action, is_first, uniform=uniform)
+        embed = stack_frames(self.encoder(image), is_first, self.config.frames)
+        return self.rssm.observe(embed, action, is_first, uniform=uniform)
+
+
+def stack_frames(embed: torch.Tensor, is_first: torch.Tensor, frames: int) -> torch.Tensor:
+    """What the posterior reads along windows: embed [B, T, E], is_first [B, T] ->
+    [B, T, frames * E], each step's embedding followed by those of the ``frames - 1`` steps
+    before it, most recent first. Before an episode's (or a window's) first step that step's
+    embedding repeats, so the start reads as a scene at rest.
+
+    Why more than one frame: the teacher's posterior reads the full state, velocities
+    included, so its recurrence never had to infer them; from one image a velocity can only
+    come from h, and an error there is never corrected by what the student sees."""
+    stacked, previous = [embed], embed
+    for _ in range(frames - 1):
+        shifted = torch.cat([previous[:, :1], previous[:, :-1]], 1)
+        previous = torch.where(is_first.bool()[..., None], previous, shifted)
+        stacked.append(previous)
+    return torch.cat(stacked, -1)
+
+
+def step_frames(embed: torch.Tensor, history: torch.Tensor | None, frames: int
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`stack_frames` one step at a time: embed [N, E] and the history the previous
+    step returned ([N, frames - 1, E], None at an episode's first step) -> (posterior input
+    [N, frames * E], next history)."""
+    if history is None:
+        history = embed[:, None].expand(-1, frames - 1, -1)
+    stacked = torch.cat([embed, history.flatten(1)], -1)
+    return stacked, torch.cat([embed[:, None], history], 1)[:, :frames - 1]
 
 
 @torch.no_grad()
