@@ -65,6 +65,8 @@ def main(
     max_steps: Annotated[int | None, typer.Option(help="Agent steps per episode.")] = None,
     action_repeat: Annotated[int | None, typer.Option(
         help="Simulator steps per agent step [the agents' own; 2 if none says].")] = None,
+    supersample: Annotated[int | None, typer.Option(
+        help="Render at this multiple and downsample [each agent's training data's].")] = None,
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
     agents = parse_agents(agent, device)
@@ -75,7 +77,7 @@ def main(
     if action_repeat is None:
         action_repeat = agents_setting(agents, "action_repeat") or DEFAULT_ACTION_REPEAT
     config = EvalConfig(task=task, dr=dr, episodes=episodes, max_steps=max_steps,
-                        action_repeat=action_repeat,
+                        action_repeat=action_repeat, supersample=supersample,
                         backgrounds=None if backgrounds is None else str(backgrounds))
     seed_list = parse_list(seeds, int, "--seeds")
     summary = run_evaluation(agents, config, seed_list, out_dir, video, device)

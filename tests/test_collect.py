@@ -256,6 +256,31 @@ def test_a_finished_run_extends_d_with_its_frozen_teacher(tmp_path: Path) -> Non
         collect_preset("tiny", learn_frames=100)
 
 
+def test_supersampled_collection_records_it_and_its_frames_reproduce(tmp_path: Path) -> None:
+    from twist_data.randomisation import VIEW_PARAMS, DRConfig
+    from twist_data.render import DRRenderer
+    from twist_data.rerender import check_reproduction, render_blocks, reproduce_frames
+
+    collect(tmp_path, collect_preset("tiny", frames=100, supersample=2))  # the prefill episode
+    dataset = open_dataset(tmp_path)
+    assert dataset.spec.supersample == 2
+    assert dataset.spec.image_agent_info()["supersample"] == 2
+    steps = np.array([0, 25, dataset.n_steps - 1])
+    reproduced = reproduce_frames(dataset, steps)
+    assert not check_reproduction(dataset, 20)  # every re-render is pixel-identical
+    # Supersampling is rendering at twice the side and area-averaging 2x2 pixels.
+    block = render_blocks(dataset.spec)[0]
+    params = {p.name: dataset.column(f"dr/{p.name}")[steps] for p in VIEW_PARAMS}
+    physics = dataset.column("physics")[steps]
+    with DRRenderer(dataset.spec.task, DRConfig.from_json(block["config"]), 128, 2) as large:
+        for i in range(steps.size):
+            frames = large.render(physics[i], {k: v[i] for k, v in params.items()})
+            averaged = frames.reshape(2, 64, 2, 64, 2, 3).mean((2, 4))
+            assert np.abs(averaged - reproduced[i]).max() <= 1  # rounding
+    with pytest.raises(ConfigError, match="supersample must be > 0, got 0"):
+        collect_preset("tiny", supersample=0)
+
+
 def test_frozen_noise_perturbs_only_the_frozen_teachers_actions(tmp_path: Path) -> None:
     learned = collect_preset("tiny", frames=200)
     collect(tmp_path / "a", learned)

@@ -13,6 +13,7 @@ import pandas as pd
 import pytest
 import torch
 
+from twist_data.errors import ConfigError
 from twist_data.tasks import TaskEnv
 from twist_models.agent import Agent
 from twist_models.config import AgentConfig, student_preset, teacher_preset
@@ -215,3 +216,28 @@ def test_reference_agents_score_what_their_actions_earn(gl, agents, tmp_path) ->
                             "--out", str(tmp_path / "alone")], capture_output=True, text=True,
                            timeout=300)
     assert alone.returncode == 2 and "pass --task" in alone.stderr, alone.stderr
+
+
+def test_image_agents_see_the_world_rendered_as_their_data_was(gl, agents, tmp_path,
+                                                               monkeypatch) -> None:
+    from twist_data.render import DRRenderer
+
+    made: list[int] = []
+    original = DRRenderer.__init__
+
+    def spy(self, *args, supersample: int = 1, **kwargs):
+        made.append(supersample)
+        original(self, *args, supersample=supersample, **kwargs)
+
+    monkeypatch.setattr(DRRenderer, "__init__", spy)
+    bundle = Agent.load(agents["agent"])
+    bundle.info["supersample"] = 2  # as twist-distil records a supersampled D
+    supersampled = load_agent(bundle.save(tmp_path / "ss2.pt"))
+    config = EvalConfig(task="cartpole-balance", episodes=1, max_steps=2)
+    evaluate(supersampled, config)
+    evaluate(load_agent(agents["agent"]), config)  # a bundle that records none: 1
+    evaluate(supersampled, EvalConfig(task="cartpole-balance", episodes=1, max_steps=2,
+                                      supersample=1))  # an explicit setting wins
+    assert made == [2, 1, 1]
+    with pytest.raises(ConfigError, match="supersample must be > 0, got 0"):
+        EvalConfig(supersample=0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -135,3 +136,15 @@ def test_stored_dr_parameters_reproduce_each_frame(small_dataset: Path) -> None:
 def test_spec_survives_json() -> None:
     spec = synth_spec(views=3, image_size=32)
     assert DatasetSpec.from_json(spec.to_json()) == spec
+
+
+def test_spec_tells_how_its_views_were_rendered() -> None:
+    spec = synth_spec(views=3, image_size=32)
+    assert spec.supersample is None  # synthetic: nothing records a renderer
+    blocks = [{"views": [0, 2], "supersample": 2}, {"views": [2, 3], "supersample": 2}]
+    rendered = dataclasses.replace(spec, extra={"render": blocks})
+    assert rendered.supersample == 2
+    assert rendered.image_agent_info() == {"task": spec.task, "action_repeat": spec.action_repeat,
+                                           "image_size": 32, "supersample": 2}
+    blocks[1] = {"views": [2, 3]}  # a block from before the field: rendered at 1
+    assert dataclasses.replace(spec, extra={"render": blocks}).supersample is None

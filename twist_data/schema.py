@@ -97,6 +97,20 @@ class DatasetSpec:
     def image_shape(self) -> tuple[int, int, int]:
         return (self.image_height, self.image_width, IMAGE_CHANNELS)
 
+    @property
+    def supersample(self) -> int | None:
+        """The supersampling factor every view was rendered with (the render blocks of
+        ``extra["render"]``); None when the views differ in it or nothing records how they
+        were rendered (synthetic shards)."""
+        factors = {int(block.get("supersample", 1)) for block in self.extra.get("render") or []}
+        return factors.pop() if len(factors) == 1 else None
+
+    def image_agent_info(self) -> dict[str, Any]:
+        """How an agent trained on these images must be shown the world again: task, action
+        repeat, image size and supersampling (None: unknown)."""
+        return {"task": self.task, "action_repeat": self.action_repeat,
+                "image_size": self.image_height, "supersample": self.supersample}
+
     def to_json(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
         out["extra"] = json.loads(json.dumps(dict(self.extra)))

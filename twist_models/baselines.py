@@ -182,8 +182,7 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
         if updates % config.checkpoint_every == 0 or updates == config.steps:
             save_checkpoint(latest, "dreamer", model, dreamer_config, model.optimisers(),
                             {"updates": updates})
-    agent = image_agent(model, {"task": spec.task, "action_repeat": spec.action_repeat,
-                                "image_size": spec.image_height, "dataset": str(dataset),
+    agent = image_agent(model, {**spec.image_agent_info(), "dataset": str(dataset),
                                 "baseline": config.kind, "updates": int(model.step)})
     path = agent.save(out / "agent.pt")
     summary = {"kind": config.kind, "updates": int(model.step), "agent": str(path),

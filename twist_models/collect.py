@@ -112,6 +112,9 @@ class CollectConfig:
     """K randomised renders per step."""
     image_size: int = 64
     """Render side in pixels."""
+    supersample: int = 1
+    """Render at this multiple of ``image_size`` and area-downsample: anti-aliasing, without
+    which thin geoms (cartpole's pole and rail, the cup's string) break into stray pixels."""
     dr: str = "train"
     """DR preset of the renders (``twist-data`` lists them)."""
     backgrounds: str | None = None
@@ -179,8 +182,9 @@ class CollectConfig:
             raise ConfigError(f"unknown model preset {self.model!r}; valid: {', '.join(PRESETS)}")
         if self.dr not in DR_PRESETS:
             raise ConfigError(f"unknown DR preset {self.dr!r}; valid: {', '.join(DR_PRESETS)}")
-        require_positive(self, "frames", "views", "image_size", "action_repeat", "train_every",
-                         "batch_size", "batch_length", "eval_every", "snapshot_every")
+        require_positive(self, "frames", "views", "image_size", "supersample", "action_repeat",
+                         "train_every", "batch_size", "batch_length", "eval_every",
+                         "snapshot_every")
         require_non_negative(self, "prefill_frames", "pretrain_updates", "eval_episodes",
                              "behaviour_from", "frozen_noise")
         if self.learn_frames is not None and self.learn_frames <= self.prefill_frames:
@@ -366,7 +370,8 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
     teacher_config = config.teacher_config(env.state_dim, env.action_dim)
     torch_device = torch.device(device)
     make_renderer = RenderProcess if render_process else DRRenderer
-    with make_renderer(config.task, dr_config, config.image_size, config.views) as renderer:
+    with make_renderer(config.task, dr_config, config.image_size, config.views,
+                       config.supersample) as renderer:
         folder.mkdir(parents=True, exist_ok=True)
         if path.exists():
             writer = ShardWriter.resume(path)

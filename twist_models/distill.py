@@ -573,8 +573,7 @@ class _Run:
         student = self._checkpoint(self.out / FINAL_STUDENT)
         agent = self.out / AGENT
         if self.writes:
-            info = {"task": self.data.spec.task, "action_repeat": self.data.spec.action_repeat,
-                    "image_size": self.data.spec.image_height, "dataset": str(self.dataset_path),
+            info = {**self.data.spec.image_agent_info(), "dataset": str(self.dataset_path),
                     "teacher": str(self.teacher_path), "student_updates": self.updates}
             Agent.from_models(self.student, self.teacher, info).save(agent)
         summary = DistilSummary(

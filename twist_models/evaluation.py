@@ -59,6 +59,9 @@ class EvalConfig:
     """Episodes per seed (the paper: 100)."""
     image_size: int = 64
     """Rendered view side in pixels (the student's input size)."""
+    supersample: int | None = None
+    """Render at this multiple and area-downsample (anti-aliasing); None: as each image
+    agent's training data was rendered (its bundle records it), 1 where unknown."""
     action_repeat: int = DEFAULT_ACTION_REPEAT
     """Simulator steps per agent step (the agents' own: :func:`check_compatible` refuses
     others)."""
@@ -72,6 +75,8 @@ class EvalConfig:
         if self.episodes < 1:
             raise ConfigError(f"episodes must be >= 1, got {self.episodes}")
         require_positive(self, "image_size", "action_repeat")
+        if self.supersample is not None:
+            require_positive(self, "supersample")
 
     def dr_config(self) -> DRConfig:
         """The preset (with user backgrounds), drawn once per episode."""
@@ -120,6 +125,7 @@ class ImageAgent:
         self.agent = agent
         self.task = self.agent.info.get("task")
         self.image_size = self.agent.info.get("image_size")
+        self.supersample = self.agent.info.get("supersample")
         self.action_repeat = self.agent.info.get("action_repeat")
         self._state: AgentState | None = None
 
@@ -247,7 +253,9 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
     env = TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
     render = agent.uses_images or record is not None
     results = []
-    with (DRRenderer(config.task, config.dr_config(), config.image_size, views=1) as renderer,
+    supersample = config.supersample or getattr(agent, "supersample", None) or 1
+    with (DRRenderer(config.task, config.dr_config(), config.image_size, views=1,
+                     supersample=supersample) as renderer,
           single_threaded()):
         sampler = renderer.sampler(seed)
         for i in range(config.episodes):
