@@ -235,8 +235,11 @@ class CollectConfig:
 COLLECT_PRESETS: dict[str, CollectConfig] = {
     # DreamerV2 DMC (configs.yaml `dmc`): prefill 5000 agent steps = 10K frames, pretrain
     # 100, train_every 5; 500K frames, eval every 10K frames.
+    # Rendered anti-aliased (supersample 2), as dm_control's own 4x multisampled render is:
+    # without it cartpole's pole breaks into stray pixels at 64x64 (README, "Eleventh
+    # session"); the same holds for quick.
     "paper": CollectConfig(model="paper", frames=500_000, eval_every=10_000, eval_episodes=10,
-                           snapshot_every=100_000, prefill_frames=10_000),
+                           snapshot_every=100_000, prefill_frames=10_000, supersample=2),
     # CPU-sized teacher: the recipe that learned fastest on this 2-core machine (README,
     # "Teacher learning"; each setting was measured there against DreamerV2's). Acting every
     # 4 frames moves the state 2x more per model step and halves the per-frame cost; gamma
@@ -250,7 +253,7 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # distilled from 300 episodes tracks the teacher's h far better than from 28 (README,
     # "Ninth session").
     "quick": CollectConfig(model="quick", frames=300_000, learn_frames=60_000, freeze_best=True,
-                           eval_every=4_000, eval_episodes=3,
+                           supersample=2, eval_every=4_000, eval_episodes=3,
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,
                            pretrain_updates=2_000, behaviour_from=2_000, train_every=4,
                            batch_size=32, imag_starts=256, model_lr=1e-3, overshoot=15,
