@@ -25,6 +25,7 @@ from twist_data.render import DRRenderer
 from twist_data.tasks import TaskEnv
 
 ANGLES = (0.0, 0.03, 0.06, 0.1)
+CART, HINGE = 1, 2  # cartpole's physics vector: time, qpos (cart slider, pole hinge), qvel
 
 
 def main() -> None:
@@ -33,7 +34,6 @@ def main() -> None:
     args = parser.parse_args()
     env = TaskEnv("cartpole-balance")
     physics = np.array(env.reset(seed=0).physics, np.float64)
-    hinge = 1 + 1  # layout: time, qpos = (cart slider, pole hinge), qvel
     rows, names = [], []
     for dr in ("none", "train"):
         for supersample in (1, 2):
@@ -45,7 +45,7 @@ def main() -> None:
                 frames = []
                 for angle in ANGLES:
                     state = physics.copy()
-                    state[1], state[hinge] = 0.0, angle
+                    state[CART], state[HINGE] = 0.0, angle
                     frames.append(renderer.render(state, params)[0])
             rows.append(np.concatenate(frames, 1))
             names.append(f"{dr}, supersample {supersample}")

@@ -185,6 +185,10 @@ def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path) -> N
     with pytest.raises(CollectError, match="task 'cartpole-balance', but this run asks for "
                                            "'cup-catch'"):
         collect(tmp_path, dataclasses.replace(config, task="cup-catch"), shard="other")
+    with pytest.raises(CollectError, match="supersample 1, but this run asks for 2"):
+        collect(tmp_path, dataclasses.replace(config, supersample=2), shard="other")
+    with pytest.raises(CollectError, match="supersample 1, but this run asks for 2"):
+        collect(tmp_path, dataclasses.replace(config, supersample=2), resume=True)
     with pytest.raises(CollectError, match=r"already exists .* pass --resume"):
         collect(tmp_path, config)
     with pytest.raises(CollectError, match="seed was 0, now 5"):

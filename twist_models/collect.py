@@ -398,6 +398,7 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
         for name, have, want in (("task", spec.task, config.task),
                                  ("views", spec.views, config.views),
                                  ("image size", spec.image_height, config.image_size),
+                                 ("supersample", spec.supersample, config.supersample),
                                  ("action repeat", spec.action_repeat, config.action_repeat)):
             if have != want:
                 raise CollectError(f"{str(out)!r} holds a dataset with {name} {have!r}, but this "
