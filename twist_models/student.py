@@ -12,6 +12,10 @@ from twist_models.config import StudentConfig
 from twist_models.networks import ImageEncoder
 from twist_models.rssm import RSSM, State
 
+#: The RSSM's transition modules (the GRU's input layer, the GRU, the prior head): what the
+#: student can copy whole from the teacher, and what freezing its dynamics keeps fixed.
+TRANSITION = ("img_in", "gru", "img_out")
+
 
 class Student(nn.Module):
     """Image encoder + RSSM with the teacher's sizes."""
@@ -39,19 +43,23 @@ def stack_frames(embed: torch.Tensor, is_first: torch.Tensor, frames: int) -> to
     Why more than one frame: the teacher's posterior reads the full state, velocities
     included, so its recurrence never had to infer them; from one image a velocity can only
     come from h, and an error there is never corrected by what the student sees."""
-    stacked, previous = [embed], embed
+    if frames == 1:
+        return embed
+    stacked, previous, first = [embed], embed, is_first.bool()[..., None]
     for _ in range(frames - 1):
         shifted = torch.cat([previous[:, :1], previous[:, :-1]], 1)
-        previous = torch.where(is_first.bool()[..., None], previous, shifted)
+        previous = torch.where(first, previous, shifted)
         stacked.append(previous)
     return torch.cat(stacked, -1)
 
 
 def step_frames(embed: torch.Tensor, history: torch.Tensor | None, frames: int
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+                ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`stack_frames` one step at a time: embed [N, E] and the history the previous
     step returned ([N, frames - 1, E], None at an episode's first step) -> (posterior input
-    [N, frames * E], next history)."""
+    [N, frames * E], next history; None for one frame, which keeps none)."""
+    if frames == 1:  # the paper's student: nothing to stack on this per-step path
+        return embed, None
     if history is None:
         history = embed[:, None].expand(-1, frames - 1, -1)
     stacked = torch.cat([embed, history.flatten(1)], -1)
@@ -70,7 +78,7 @@ def copy_teacher_dynamics(student: Student, teacher_rssm: RSSM) -> None:
     if student.rssm.config != teacher_rssm.config:
         raise ConfigError(f"the student's RSSM sizes {student.rssm.config} differ from the "
                           f"teacher's {teacher_rssm.config}; its dynamics cannot be copied")
-    for name in ("img_in", "gru", "img_out"):
+    for name in TRANSITION:
         getattr(student.rssm, name).load_state_dict(getattr(teacher_rssm, name).state_dict())
     deter = teacher_rssm.config.deter
     student_in, teacher_in = student.rssm.obs_out[0], teacher_rssm.obs_out[0]
@@ -82,5 +90,5 @@ def copy_teacher_dynamics(student: Student, teacher_rssm: RSSM) -> None:
 def freeze_dynamics(student: Student) -> None:
     """Stop training the student's transition: the GRU, its input layer and the prior head
     (what :func:`copy_teacher_dynamics` copies whole); the encoder and posterior head train."""
-    for name in ("img_in", "gru", "img_out"):
+    for name in TRANSITION:
         getattr(student.rssm, name).requires_grad_(False)
