@@ -27,6 +27,7 @@ from twist_data.writer import ShardWriter
 from twist_models.checkpoint import read_checkpoint
 from twist_models.collect import (
     CollectError,
+    Pushes,
     collect,
     collect_preset,
     shard_seed,
@@ -300,6 +301,55 @@ def test_frozen_noise_perturbs_only_the_frozen_teachers_actions(tmp_path: Path) 
     assert clipped["a"] == 0.0 and clipped["b"] > 0.2
     with pytest.raises(ConfigError, match="frozen_noise perturbs"):
         collect_preset("tiny", frozen_noise=0.5)
+
+
+def test_pushes_start_at_the_given_rate_and_hold_one_action() -> None:
+    every, longest = 20, 10
+    pushes = Pushes(every, longest, action_dim=2, seed=3)
+    actions = [pushes() for _ in range(100_000)]
+    pushed = np.array([a is not None for a in actions])
+    # A renewal process: idle spells of mean every - 1 steps (geometric), pushes of mean
+    # (longest + 1) / 2 steps.
+    mean_push = (longest + 1) / 2
+    assert abs(pushed.mean() - mean_push / (every - 1 + mean_push)) < 0.01
+    # Each push holds one action (a new push draws another, even straight after one).
+    runs, previous = [], None
+    for action in actions:
+        if action is not None and previous is not None and np.array_equal(action, previous):
+            runs[-1] += 1
+        elif action is not None:
+            runs.append(1)
+            assert np.all(np.abs(action) <= 1.0)
+        previous = action
+    assert min(runs) == 1 and max(runs) == longest
+    assert abs(np.mean(runs) - mean_push) < 0.2
+    again = Pushes(every, longest, action_dim=2, seed=3)
+    assert all((a is None and b is None) or np.array_equal(a, b)
+               for a, b in zip(actions[:1000], (again() for _ in range(1000)), strict=True))
+
+
+def test_push_every_shoves_only_the_frozen_teacher(tmp_path: Path) -> None:
+    learned = collect_preset("tiny", frames=200)
+    collect(tmp_path / "a", learned)
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    repeated = {}
+    for name, every in (("a", 0), ("b", 4)):
+        extended = dataclasses.replace(learned, frames=500, learn_frames=200, push_every=every,
+                                       push_steps=5)
+        collect(tmp_path / name, extended, resume=True)
+        dataset = open_dataset(tmp_path / name)
+        share = []
+        for i in range(dataset.n_episodes):
+            action = dataset.episode(i).action[1:, 0]
+            share.append(float(np.mean(action[1:] == action[:-1])))
+        repeated[name] = share
+    # The teacher's sampled actions never repeat exactly; a push holds one action.
+    assert max(repeated["a"]) == 0.0 and repeated["b"][:2] == [0.0, 0.0]
+    assert min(repeated["b"][2:]) > 0.1
+    with pytest.raises(ConfigError, match="push_every perturbs"):
+        collect_preset("tiny", push_every=10)
+    with pytest.raises(ConfigError, match="push_steps must be > 0, got 0"):
+        collect_preset("tiny", learn_frames=200, push_every=10, push_steps=0)
 
 
 def test_freeze_best_lets_the_best_evaluated_teacher_act_once_learning_ends(

@@ -108,6 +108,14 @@ class CollectConfig:
     clipped to [-1, 1]; D records the executed action): states off the teacher's own path
     from which it recovers, for the student to learn from, as DART (Laskey et al., 2017)
     injects noise into an expert's demonstrations; 0: none."""
+    push_every: int = 0
+    """Mean agent steps between pushes of the frozen teacher (after ``learn_frames``): a push
+    overrides its actions for 1..``push_steps`` steps with one action drawn uniform in
+    [-1, 1], then the teacher recovers. Per-step noise (``frozen_noise``) averages out and
+    barely moves a balancing teacher's states; pushes put into D the larger excursions an
+    imperfect student meets, with the teacher's latents for them; 0: none."""
+    push_steps: int = 10
+    """Longest push, in agent steps (see ``push_every``)."""
     views: int = 2
     """K randomised renders per step."""
     image_size: int = 64
@@ -186,13 +194,15 @@ class CollectConfig:
                          "train_every", "batch_size", "batch_length", "eval_every",
                          "snapshot_every")
         require_non_negative(self, "prefill_frames", "pretrain_updates", "eval_episodes",
-                             "behaviour_from", "frozen_noise")
+                             "behaviour_from", "frozen_noise", "push_every")
+        require_positive(self, "push_steps")
         if self.learn_frames is not None and self.learn_frames <= self.prefill_frames:
             raise ConfigError(f"learn_frames {self.learn_frames} ends learning before the "
                               f"teacher first acts (prefill_frames {self.prefill_frames})")
-        if self.frozen_noise and self.learn_frames is None:
-            raise ConfigError("frozen_noise perturbs the frozen teacher's actions; it needs "
-                              "learn_frames")
+        for name in ("frozen_noise", "push_every"):
+            if getattr(self, name) and self.learn_frames is None:
+                raise ConfigError(f"{name} perturbs the frozen teacher's actions; it needs "
+                                  "learn_frames")
         if self.freeze_best and (self.learn_frames is None or self.eval_episodes < 1):
             raise ConfigError("freeze_best needs learn_frames and eval_episodes >= 1 (it "
                               "freezes the best evaluated teacher when learning ends)")
@@ -326,12 +336,35 @@ class CollectSummary:
 
 
 # -- the collector ----------------------------------------------------------------------------
+class Pushes:
+    """Random shoves of one episode: on each step without a push under way one starts with
+    probability 1 / ``every``, lasts 1..``longest`` steps (uniform) and holds one action
+    drawn uniform in [-1, 1]^A. Seeded, so an episode's pushes are reproducible."""
+
+    def __init__(self, every: int, longest: int, action_dim: int, seed: int) -> None:
+        self.every, self.longest, self.action_dim = every, longest, action_dim
+        self.rng = np.random.default_rng(seed)
+        self.left = 0
+        self.action = np.zeros(action_dim, np.float32)
+
+    def __call__(self) -> np.ndarray | None:
+        """This step's push action, or None when the policy acts."""
+        if self.left == 0 and self.rng.random() < 1.0 / self.every:
+            self.left = int(self.rng.integers(1, self.longest + 1))
+            self.action = self.rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+        if self.left == 0:
+            return None
+        self.left -= 1
+        return self.action
+
+
 def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str = "cpu",
-                   explore: bool = True, noise: float = 0.0) -> Policy:
+                   explore: bool = True, noise: float = 0.0, pushes: Pushes | None = None
+                   ) -> Policy:
     """The teacher as a rollout policy on privileged state: it filters its latent across the
     steps of an episode (reset at ``is_first``) and returns actions as numpy arrays, with
-    Gaussian noise of std ``noise`` added (clipped to [-1, 1]; the filter sees the action
-    taken)."""
+    Gaussian noise of std ``noise`` added (clipped to [-1, 1]), or, while one of ``pushes``
+    is under way, the push's action. The filter always sees the action taken."""
     latent = None
     previous = torch.zeros(1, action_dim, device=device)
 
@@ -344,6 +377,9 @@ def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str
         action, latent = teacher.policy(state, latent, previous, first, explore=explore)
         if noise:
             action = (action + noise * torch.randn_like(action)).clamp(-1.0, 1.0)
+        push = pushes() if pushes is not None else None
+        if push is not None:
+            action = torch.as_tensor(push, device=device)[None]
         previous = action
         return action[0].cpu().numpy()
 
@@ -409,9 +445,10 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     stored = folder / "config.json"
     if resume and stored.exists():
         before = json.loads(stored.read_text())["collect"]
-        refuse_resume(resume_conflicts(before, config, ("frames", "learn_frames", "freeze_best",
-                                                           "frozen_noise")),
-                      CollectError, "--steps and --set learn_frames, freeze_best, frozen_noise")
+        extendable = ("frames", "learn_frames", "freeze_best", "frozen_noise", "push_every",
+                      "push_steps")
+        refuse_resume(resume_conflicts(before, config, extendable), CollectError,
+                      "--steps and --set " + ", ".join(extendable[1:]))
 
 
 class _Run:
@@ -516,8 +553,11 @@ class _Run:
         if frames < c.prefill_frames:
             policy, name, step = random_policy(self.env.action_dim, episode_seed), "random", -1
         else:
+            frozen = c.acts_frozen(frames)
+            pushes = (Pushes(c.push_every, c.push_steps, self.env.action_dim,
+                             derived_seed(episode_seed, 7)) if frozen and c.push_every else None)
             policy = teacher_policy(self.teacher, self.env.action_dim, self.device,
-                                    noise=c.frozen_noise if c.acts_frozen(frames) else 0.0)
+                                    noise=c.frozen_noise if frozen else 0.0, pushes=pushes)
             name, step = "teacher", int(self.teacher.step)
         with single_threaded():
             episode, info = record_episode(self.env, self.renderer, self.dr_sampler, policy,
