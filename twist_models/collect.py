@@ -246,22 +246,22 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # DreamerV2 DMC (configs.yaml `dmc`): prefill 5000 agent steps = 10K frames, pretrain
     # 100, train_every 5; 500K frames, eval every 10K frames.
     # Rendered anti-aliased (supersample 2), as dm_control's own 4x multisampled render is:
-    # without it cartpole's pole breaks into stray pixels at 64x64 (README, "Eleventh
-    # session"); the same holds for quick.
+    # without it cartpole's pole breaks into stray pixels at 64x64 (docs/experiments.md,
+    # "Eleventh session"); the same holds for quick.
     "paper": CollectConfig(model="paper", frames=500_000, eval_every=10_000, eval_episodes=10,
                            snapshot_every=100_000, prefill_frames=10_000, supersample=2),
-    # CPU-sized teacher: the recipe that learned fastest on this 2-core machine (README,
-    # "Teacher learning"; each setting was measured there against DreamerV2's). Acting every
-    # 4 frames moves the state 2x more per model step and halves the per-frame cost; gamma
-    # 0.98 per agent step keeps DreamerV2's horizon in seconds; 2,000 world-model updates on
+    # CPU-sized teacher: the recipe that learned fastest on this 2-core machine
+    # (docs/experiments.md, "Teacher learning"; each setting was measured there against
+    # DreamerV2's). Acting every 4 frames moves the state 2x more per model step and halves
+    # the per-frame cost; gamma 0.98 per agent step keeps DreamerV2's horizon in seconds; 2,000 world-model updates on
     # 10K random frames come before behaviour learning; a 12x faster actor (1e-3) and a
     # DreamerV3 critic (two-hot, normalised returns) fit the few thousand behaviour updates that
     # the main job's budget allows; 15-step open-loop overshooting trains what imagination uses.
     # The teacher learns for 60K frames (at 28K it had not learned to balance: it scored
-    # below the zero-action floor of ~750; one run reached 993 at 56K; README, "Tenth
-    # session"), then the best evaluated teacher acts frozen to 300K (~3 minutes): the student
-    # distilled from 300 episodes tracks the teacher's h far better than from 28 (README,
-    # "Ninth session").
+    # below the zero-action floor of ~750; one run reached 993 at 56K; docs/experiments.md,
+    # "Tenth session"), then the best evaluated teacher acts frozen to 300K (~3 minutes): the
+    # student distilled from 300 episodes tracks the teacher's h far better than from 28
+    # (docs/experiments.md, "Ninth session").
     "quick": CollectConfig(model="quick", frames=300_000, learn_frames=60_000, freeze_best=True,
                            supersample=2, eval_every=4_000, eval_episodes=3,
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,
