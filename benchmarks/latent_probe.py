@@ -1,21 +1,25 @@
 """Where does a distilled student lose the teacher's behaviour? (issue 7 diagnosis)
 
-The teacher acts on states for ``--episodes`` episodes; the same physics is rendered under
-``--dr`` (DR drawn once per episode) and two filters run in its shadow on the executed actions:
+The teacher acts on states for ``--episodes`` episodes (``--acting student``: the student acts
+on images, so the states are those it meets itself); the same physics is rendered under
+``--dr`` (DR drawn once per episode, supersampled as the agent's D was) and two filters run in
+its shadow on the executed actions:
 
 * ``teacher_again``: the same teacher on the same states with its own latent samples -- the
   baseline measured in the same run: how far two runs of the teacher itself disagree, since
   its posterior is stochastic;
 * ``student``: the agent bundle's student on the rendered images.
 
-For each: the correlation of the teacher's actor (mode) on that latent with the acting
-teacher's action, the h-MSE to the acting teacher's h (per element, and against the variance
-of the teacher's h over the episode), and the share of latent variables whose sampled class
-differs. For the student also the swaps: the actor on (student h, teacher z) and on
-(teacher h, student z), which tell which half of the latent its error comes from.
+For each: the correlation of the teacher's actor (mode) on that latent with the teacher's
+action (its filter on the states), the h-MSE to that teacher's h (per element, and against
+the variance of the teacher's h over the episode), and the share of latent variables whose
+sampled class differs. For the student also the gain: the least-squares slope of its action
+on the teacher's (1: the right size; near 0: it barely acts on what the teacher reacts to),
+and the swaps: the actor on (student h, teacher z) and on (teacher h, student z), which tell
+which half of the latent its error comes from. ``return``: the episodes' return.
 
 Prints one JSON line of means over episodes. ``python benchmarks/latent_probe.py TEACHER
-AGENT [--dr heldout] [--episodes 4]``
+AGENT [--dr heldout] [--episodes 4] [--acting student]``
 """
 
 from __future__ import annotations
@@ -43,8 +47,8 @@ def differing_classes(a: State, b: State) -> float:
     return float((a["stoch"].argmax(-1) != b["stoch"].argmax(-1)).float().mean())
 
 
-def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, agent: Agent
-            ) -> dict[str, float]:
+def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, agent: Agent,
+            student_acts: bool = False) -> dict[str, float]:
     sampler = renderer.sampler(seed)
     step = env.reset(seed=seed, dynamics=sampler.begin_episode(seed))
     acting = again = None
@@ -54,6 +58,7 @@ def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, age
         "action", "again_action", "student_action", "student_h_teacher_z",
         "teacher_h_student_z", "h", "again_h", "student_h", "again_z", "student_z")}
     actor = teacher.act_on_latent
+    total = 0.0
     while not step.is_last:
         state = torch.as_tensor(step.state, dtype=torch.float32)[None]
         first = torch.tensor([step.is_first])
@@ -61,7 +66,7 @@ def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, age
             action, acting = teacher.policy(state, acting, previous, first, explore=False)
             _, again = teacher.policy(state, again, previous, first, explore=False)
         image = renderer.render(step.physics, sampler.sample())[0]
-        _, student = agent.act(image, student)
+        student_action, student = agent.act(image, student)
         mine = student.latent
         with torch.no_grad():
             rows["again_action"].append(float(actor(again)[0, 0]))
@@ -75,13 +80,19 @@ def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, age
             rows[key].append(latent["deter"][0].numpy())
         rows["again_z"].append(differing_classes(acting, again))
         rows["student_z"].append(differing_classes(acting, mine))
+        if student_acts:
+            action = torch.as_tensor(student_action, dtype=torch.float32).reshape(1, -1)
         # Every filter continues from the action that was executed.
         student = dataclasses.replace(student, action=action)
         previous = action
         step = env.step(action[0].numpy())
+        total += step.reward
     h = np.array(rows["h"])
     variance = float(h.var(0).mean())
-    result = {"h_variance": variance}
+    teacher_actions, student_actions = np.array(rows["action"]), np.array(rows["student_action"])
+    result = {"return": total, "h_variance": variance,
+              "student_action_gain": float(teacher_actions @ student_actions
+                                           / (teacher_actions @ teacher_actions))}
     for name in ("again", "student"):
         mse = float(((np.array(rows[f"{name}_h"]) - h) ** 2).mean())
         result.update({f"{name}_action_corr": correlation(rows["action"], rows[f"{name}_action"]),
@@ -99,6 +110,7 @@ def main() -> None:
     parser.add_argument("--dr", default="heldout")
     parser.add_argument("--episodes", type=int, default=4)
     parser.add_argument("--seed", type=int, default=200)
+    parser.add_argument("--acting", choices=("teacher", "student"), default="teacher")
     args = parser.parse_args()
     torch.manual_seed(0)
     teacher = load_teacher(args.teacher)[0].eval()
@@ -106,11 +118,14 @@ def main() -> None:
     task = agent.info["task"]
     env = TaskEnv(task, action_repeat=agent.info["action_repeat"], seed=args.seed)
     dr = dataclasses.replace(dr_preset(args.dr), resample="episode")
-    with DRRenderer(task, dr, agent.info["image_size"], views=1) as renderer:
-        runs = [episode(env, renderer, args.seed + i, teacher, agent)
+    supersample = agent.info.get("supersample") or 1
+    with DRRenderer(task, dr, agent.info["image_size"], views=1,
+                    supersample=supersample) as renderer:
+        runs = [episode(env, renderer, args.seed + i, teacher, agent, args.acting == "student")
                 for i in range(args.episodes)]
     means = {k: round(float(np.mean([r[k] for r in runs])), 4) for k in runs[0]}
-    print(json.dumps({"task": task, "dr": args.dr, "episodes": args.episodes, **means}))
+    print(json.dumps({"task": task, "dr": args.dr, "acting": args.acting,
+                      "episodes": args.episodes, **means}))
 
 
 if __name__ == "__main__":

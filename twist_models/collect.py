@@ -253,10 +253,11 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # CPU-sized teacher: the recipe that learned fastest on this 2-core machine
     # (docs/experiments.md, "Teacher learning"; each setting was measured there against
     # DreamerV2's). Acting every 4 frames moves the state 2x more per model step and halves
-    # the per-frame cost; gamma 0.98 per agent step keeps DreamerV2's horizon in seconds; 2,000 world-model updates on
-    # 10K random frames come before behaviour learning; a 12x faster actor (1e-3) and a
-    # DreamerV3 critic (two-hot, normalised returns) fit the few thousand behaviour updates that
-    # the main job's budget allows; 15-step open-loop overshooting trains what imagination uses.
+    # the per-frame cost; gamma 0.98 per agent step keeps DreamerV2's horizon in seconds;
+    # 2,000 world-model updates on 10K random frames come before behaviour learning; a 12x
+    # faster actor (1e-3) and a DreamerV3 critic (two-hot, normalised returns) fit the few
+    # thousand behaviour updates that the main job's budget allows; 15-step open-loop
+    # overshooting trains what imagination uses.
     # The teacher learns for 60K frames (at 28K it had not learned to balance: it scored
     # below the zero-action floor of ~750; one run reached 993 at 56K; docs/experiments.md,
     # "Tenth session"), then the best evaluated teacher acts frozen to 300K (~3 minutes): the
