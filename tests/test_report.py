@@ -136,6 +136,8 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
     assert not stored("twist-scratch")["distil"]["copy_dynamics"]
     assert not stored("twist-no-imagined")["distil"]["imagined"]
     assert stored("twist-no-noise")["distil"]["action_noise"] == 0.0
+    assert stored("twist")["distil"]["action_weight"] == 0.0
+    assert stored("twist-action")["distil"]["action_weight"] > 0.0
     student_steps = stored("twist")["distil"]["steps"]
     for name, kind in (("dreamer-dr", "dreamer"), ("dreamer-no-dr", "dreamer"),
                        ("state-recon", "state-recon")):
