@@ -20,7 +20,7 @@ import torch
 
 from twist_data.errors import ConfigError, UnknownTaskError
 from twist_data.randomisation import derived_seed
-from twist_data.reader import open_dataset
+from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.tasks import Dynamics, TaskEnv
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
@@ -286,19 +286,28 @@ def test_supersampled_collection_records_it_and_its_frames_reproduce(tmp_path: P
         collect_preset("tiny", supersample=0)
 
 
-def test_frozen_noise_perturbs_only_the_frozen_teachers_actions(tmp_path: Path) -> None:
+def _extended_with(tmp_path: Path, **perturbation: float
+                   ) -> tuple[MatchingDataset, MatchingDataset]:
+    """A tiny D whose teacher learned for 200 frames and then acted frozen to 500, collected
+    twice from the same learned episodes: as is, and with ``perturbation`` of the frozen
+    teacher's actions."""
     learned = collect_preset("tiny", frames=200)
-    collect(tmp_path / "a", learned)
-    shutil.copytree(tmp_path / "a", tmp_path / "b")
-    clipped = {}
-    for name, noise in (("a", 0.0), ("b", 1.0)):
-        extended = dataclasses.replace(learned, frames=500, learn_frames=200, frozen_noise=noise)
-        collect(tmp_path / name, extended, resume=True)
-        dataset = open_dataset(tmp_path / name)
+    collect(tmp_path / "plain", learned)
+    shutil.copytree(tmp_path / "plain", tmp_path / "perturbed")
+    extended = dataclasses.replace(learned, frames=500, learn_frames=200)
+    collect(tmp_path / "plain", extended, resume=True)
+    collect(tmp_path / "perturbed", dataclasses.replace(extended, **perturbation), resume=True)
+    return open_dataset(tmp_path / "plain"), open_dataset(tmp_path / "perturbed")
+
+
+def test_frozen_noise_perturbs_only_the_frozen_teachers_actions(tmp_path: Path) -> None:
+    def clipped(dataset: MatchingDataset) -> float:
         frozen = np.concatenate([dataset.episode(i).action[1:] for i in range(2, 5)])
         # A tanh-squashed sample is never exactly +-1; noise clipped to the bounds often is.
-        clipped[name] = float(np.mean(np.abs(frozen) == 1.0))
-    assert clipped["a"] == 0.0 and clipped["b"] > 0.2
+        return float(np.mean(np.abs(frozen) == 1.0))
+
+    plain, noisy = _extended_with(tmp_path, frozen_noise=1.0)
+    assert clipped(plain) == 0.0 and clipped(noisy) > 0.2
     with pytest.raises(ConfigError, match="frozen_noise perturbs"):
         collect_preset("tiny", frozen_noise=0.5)
 
@@ -329,23 +338,19 @@ def test_pushes_start_at_the_given_rate_and_hold_one_action() -> None:
 
 
 def test_push_every_shoves_only_the_frozen_teacher(tmp_path: Path) -> None:
-    learned = collect_preset("tiny", frames=200)
-    collect(tmp_path / "a", learned)
-    shutil.copytree(tmp_path / "a", tmp_path / "b")
-    repeated = {}
-    for name, every in (("a", 0), ("b", 4)):
-        extended = dataclasses.replace(learned, frames=500, learn_frames=200, push_every=every,
-                                       push_steps=5)
-        collect(tmp_path / name, extended, resume=True)
-        dataset = open_dataset(tmp_path / name)
-        share = []
+    def repeated(dataset: MatchingDataset) -> list[float]:
+        """Per episode, the share of steps whose action repeats the previous one exactly."""
+        shares = []
         for i in range(dataset.n_episodes):
             action = dataset.episode(i).action[1:, 0]
-            share.append(float(np.mean(action[1:] == action[:-1])))
-        repeated[name] = share
-    # The teacher's sampled actions never repeat exactly; a push holds one action.
-    assert max(repeated["a"]) == 0.0 and repeated["b"][:2] == [0.0, 0.0]
-    assert min(repeated["b"][2:]) > 0.1
+            shares.append(float(np.mean(action[1:] == action[:-1])))
+        return shares
+
+    plain, pushed = _extended_with(tmp_path, push_every=4, push_steps=5)
+    # The teacher's sampled actions never repeat exactly; a push holds one action. The first
+    # two episodes are the learned ones, shared by both.
+    assert max(repeated(plain)) == 0.0 and repeated(pushed)[:2] == [0.0, 0.0]
+    assert min(repeated(pushed)[2:]) > 0.1
     with pytest.raises(ConfigError, match="push_every perturbs"):
         collect_preset("tiny", push_every=10)
     with pytest.raises(ConfigError, match="push_steps must be > 0, got 0"):
