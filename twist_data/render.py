@@ -4,9 +4,10 @@ Design (measured on a 2-core machine with Mesa llvmpipe; see the README's perfor
 section): dm_control's ``physics.render`` spends almost all its time on a 2048² shadow map,
 4x multisampling, the floor's mirror reflection and finely tessellated capsules, of which
 only the multisampling shows at 64x64, on thin geoms (cartpole's pole and rails, the cup's
-string: they alias into stray pixels). ``supersample`` brings that back at a quarter of the
-fill rate. This renderer owns a private copy of the task's model with shadows,
-multisampling and reflection off and capsule tessellation reduced (12 slices, 6 stacks: the
+string: they alias into stray pixels). ``supersample`` brings that back by rendering
+``supersample``² times the pixels and area-averaging them (about half the speed at 2).
+This renderer owns a private copy of the task's model with shadows, multisampling and
+reflection off and capsule tessellation reduced (12 slices, 6 stacks: the
 silhouettes are pixel-identical at 64x64 to the default 28x16 in our comparisons), draws the K
 views side by side into one offscreen framebuffer and reads them back with one
 ``mjr_readPixels``.

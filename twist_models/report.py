@@ -63,8 +63,16 @@ AGENTS: dict[str, str] = {
     "state-recon": "State Recon",
     "zero": "Zero actions (the floor)",
 }
-#: ``action_weight`` of the ``twist-action`` column: the weight measured to help at CPU scale.
-ACTION_MATCHING_WEIGHT = 10.0
+#: How each student column's distillation differs from TWIST's (``twist``): the paper's
+#: from-scratch start, its two ablations, and action matching at the weight measured to help
+#: at CPU scale (README, "Learning results").
+STUDENT_VARIANTS: dict[str, dict[str, Any]] = {
+    "twist": {},
+    "twist-scratch": {"copy_dynamics": False},
+    "twist-no-imagined": {"imagined": False},
+    "twist-no-noise": {"action_noise": 0.0},
+    "twist-action": {"action_weight": 10.0},
+}
 #: Table I of the paper (held-out backgrounds, 500K frames, paper-scale models on GPU): the
 #: values quoted in our issue tracker. Blank cells are values we have not transcribed.
 PAPER_TABLE_I: dict[str, dict[str, float]] = {
@@ -198,13 +206,8 @@ class _Pipeline:
             return agent
         self._announce(f"training {AGENTS[name]}")
         resume = (folder / "config.json").exists()
-        if name.startswith("twist"):
-            changes = {"twist-scratch": {"copy_dynamics": False},
-                       "twist-no-imagined": {"imagined": False},
-                       "twist-no-noise": {"action_noise": 0.0},
-                       # The best CPU-scale student measured (README, "Learning results").
-                       "twist-action": {"action_weight": ACTION_MATCHING_WEIGHT}}.get(name, {})
-            config = dataclasses.replace(self.distil_config, **changes)
+        if name in STUDENT_VARIANTS:
+            config = dataclasses.replace(self.distil_config, **STUDENT_VARIANTS[name])
             distil(self.dataset, folder, config, resume=resume, device=self.device)
         else:
             kind = "state-recon" if name == "state-recon" else "dreamer"
