@@ -32,7 +32,8 @@ from twist_models.collect import (
     collect_preset,
     shard_seed,
 )
-from twist_models.teacher import BEST_TEACHER, Teacher, find_teacher, load_teacher
+from twist_models.evaluation import load_agent
+from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, find_teacher, load_teacher
 
 pytestmark = pytest.mark.usefixtures("gl")
 COLLECT = [sys.executable, "-m", "twist_cli.collect"]
@@ -96,6 +97,10 @@ def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> 
         floor.append(total)
     assert summary.zero_action_return == pytest.approx(np.mean(floor))
     assert evals["zero_action_return"].tolist() == [summary.zero_action_return] * len(evals)
+    # Every teacher checkpoint names its task and action repeat: twist-eval needs no --task.
+    for name in (FINAL_TEACHER, BEST_TEACHER, "latest.pt"):
+        oracle = load_agent(runs / name)
+        assert (oracle.task, oracle.action_repeat) == (config.task, config.action_repeat), name
 
 
 def test_sigkilled_cli_run_resumes_without_duplicates_or_losses(tmp_path: Path) -> None:

@@ -672,8 +672,14 @@ class _Run:
         tick = time.perf_counter()
         self.best_teacher_return = eval_return
         save_teacher(self.folder / BEST_TEACHER, self.teacher, self._counters(),
-                     {"eval_return": eval_return})
+                     {**self._provenance(), "eval_return": eval_return})
         self.seconds["checkpoint"] += time.perf_counter() - tick
+
+    def _provenance(self) -> dict[str, Any]:
+        # A teacher checkpoint names the task and action repeat it acts at, so that
+        # `twist-eval --agent oracle=teacher.pt` needs neither --task nor a student beside it,
+        # and never acts at another repeat than it learnt at.
+        return {"collect": to_json(self.config)}
 
     def _counters(self) -> dict[str, int]:
         return {"frames": self.frames, "episodes": self.writer.n_episodes}
@@ -701,7 +707,7 @@ class _Run:
         snapshot = self.next_snapshot <= self.frames and self.config.learns_at(self.frames)
         while self.next_snapshot <= self.frames:
             self.next_snapshot += self.config.snapshot_every
-        extra = {"torch_rng": torch.get_rng_state().tolist(),
+        extra = {**self._provenance(), "torch_rng": torch.get_rng_state().tolist(),
                  "replay_rng": self.replay.rng_state if self.replay is not None
                  else self.replay_state,
                  "next_eval": self.next_eval, "next_snapshot": self.next_snapshot,
