@@ -17,10 +17,12 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import zarr
 
 from twist_data.errors import ConfigError, UnknownTaskError
 from twist_data.randomisation import derived_seed
 from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.schema import ATTRS_KEY
 from twist_data.tasks import Dynamics, TaskEnv
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
@@ -313,7 +315,7 @@ def test_frozen_noise_perturbs_only_the_frozen_teachers_actions(tmp_path: Path) 
 
     plain, noisy = _extended_with(tmp_path, frozen_noise=1.0)
     assert clipped(plain) == 0.0 and clipped(noisy) > 0.2
-    with pytest.raises(ConfigError, match="frozen_noise perturbs"):
+    with pytest.raises(ConfigError, match="frozen_noise changes who acts"):
         collect_preset("tiny", frozen_noise=0.5)
 
 
@@ -356,10 +358,61 @@ def test_push_every_shoves_only_the_frozen_teacher(tmp_path: Path) -> None:
     # two episodes are the learned ones, shared by both.
     assert max(repeated(plain)) == 0.0 and repeated(pushed)[:2] == [0.0, 0.0]
     assert min(repeated(pushed)[2:]) > 0.1
-    with pytest.raises(ConfigError, match="push_every perturbs"):
+    with pytest.raises(ConfigError, match="push_every changes who acts"):
         collect_preset("tiny", push_every=10)
     with pytest.raises(ConfigError, match="push_steps must be > 0, got 0"):
         collect_preset("tiny", learn_frames=200, push_every=10, push_steps=0)
+
+
+def test_a_student_acts_instead_of_the_frozen_teacher_on_its_own_renders(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from twist_models.agent import Agent
+    from twist_models.config import student_preset
+    from twist_models.student import Student
+
+    learned = collect_preset("tiny", frames=200)
+    collect(tmp_path, learned)
+    teacher = load_teacher(find_teacher(tmp_path))[0]
+    torch.manual_seed(0)
+    info = open_dataset(tmp_path).spec.image_agent_info()
+    agent = Agent.from_models(Student(student_preset("tiny", teacher.config)), teacher, info)
+    bundle = agent.save(tmp_path / "agent.pt")
+    seen: list[tuple[np.ndarray, np.ndarray]] = []
+    original = Agent.act
+
+    def spy(self, image, state=None, explore=False):
+        action, state = original(self, image, state, explore)
+        seen.append((np.asarray(image), action))
+        return action, state
+
+    monkeypatch.setattr(Agent, "act", spy)
+    shard = zarr.open_group(tmp_path / "collect-000.zarr", mode="r+")
+    block = dict(shard.attrs[ATTRS_KEY])  # as a shard written before code 4 existed
+    block["policy_codes"] = {k: v for k, v in block["policy_codes"].items() if k != "student"}
+    shard.attrs[ATTRS_KEY] = block
+    extended = dataclasses.replace(learned, frames=400, learn_frames=200, student=str(bundle))
+    collect(tmp_path, extended, resume=True)
+    dataset = open_dataset(tmp_path)
+    infos = [dataset.episode_info(i) for i in range(dataset.n_episodes)]
+    assert [(i.policy, i.teacher_step) for i in infos[2:]] == [("student", -1)] * 2
+    stored = zarr.open_group(tmp_path / "collect-000.zarr", mode="r").attrs[ATTRS_KEY]
+    assert stored["policy_codes"]["student"] == 4
+    assert verify_dataset(tmp_path).ok
+    # Every executed action of the two episodes (50 agent steps each) is the agent's, on an
+    # image it rendered itself.
+    executed = np.concatenate([dataset.episode(i).action[1:] for i in (2, 3)])
+    assert len(seen) == 2 * 50 and all(image.shape == (64, 64, 3) for image, _ in seen)
+    np.testing.assert_array_equal(executed, [action for _, action in seen])
+    assert not np.array_equal(seen[0][0], seen[1][0])  # the pole moves
+    with pytest.raises(ConfigError, match="student changes who acts"):
+        collect_preset("tiny", student=str(bundle))
+    stranger = Agent.from_models(agent.student, teacher, {**info, "task": "cup-catch"})
+    for path, message in ((tmp_path / "missing.pt", "does not exist"),
+                          (stranger.save(tmp_path / "cup.pt"), "has task 'cup-catch'")):
+        with pytest.raises(CollectError, match=message):
+            collect(tmp_path, dataclasses.replace(extended, frames=600, student=str(path)),
+                    resume=True)
+    assert open_dataset(tmp_path).n_episodes == 4  # a refused run writes nothing
 
 
 def test_freeze_best_lets_the_best_evaluated_teacher_act_once_learning_ends(

@@ -22,7 +22,8 @@ ATTRS_KEY = "twist"
 IMAGE_CHANNELS = 3
 
 #: Codes of ``meta/episode_policy``; the same table is stored in every shard's attributes.
-POLICY_CODES: dict[str, int] = {"synthetic": 0, "random": 1, "teacher": 2, "scripted": 3}
+POLICY_CODES: dict[str, int] = {"synthetic": 0, "random": 1, "teacher": 2, "scripted": 3,
+                                "student": 4}
 
 
 @dataclass(frozen=True)

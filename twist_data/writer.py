@@ -213,6 +213,9 @@ class ShardWriter:
             "n_steps": n_steps,
             "updated": _dt.datetime.now(_dt.timezone.utc).isoformat(),
         }
+        # Codes are only ever added, so this library's table covers an older shard's: a
+        # resumed shard whose new episodes use a newer code names it.
+        self._block["policy_codes"] = POLICY_CODES
         # One atomic write of the root zarr.json: the commit point.
         self._group.attrs[ATTRS_KEY] = self._block
         if self.durable:

@@ -37,6 +37,7 @@ import os
 import time
 import zlib
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,6 +54,7 @@ from twist_data.rollout import Policy, random_policy, record_episode, simulated_
 from twist_data.sampler import SamplerConfig, WindowSampler
 from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Dynamics, Step, TaskEnv, task_spec
 from twist_data.writer import ShardWriter, shard_path
+from twist_models.agent import Agent, AgentState
 from twist_models.config import (
     PRESETS,
     TeacherConfig,
@@ -116,6 +118,12 @@ class CollectConfig:
     imperfect student meets, with the teacher's latents for them; 0: none."""
     push_steps: int = 10
     """Longest push, in agent steps (see ``push_every``)."""
+    student: str = ""
+    """An agent bundle (``agent.pt`` from twist-distil) that acts instead of the frozen teacher
+    (after ``learn_frames``), on its own render of each step: D then holds the states the
+    student itself meets, and distillation gives it the teacher's latents on them, as DAgger
+    (Ross et al., 2011) labels a learner's own states with the expert's; "": the teacher
+    acts. Its episodes are recorded with policy ``student``."""
     views: int = 2
     """K randomised renders per step."""
     image_size: int = 64
@@ -199,10 +207,10 @@ class CollectConfig:
         if self.learn_frames is not None and self.learn_frames <= self.prefill_frames:
             raise ConfigError(f"learn_frames {self.learn_frames} ends learning before the "
                               f"teacher first acts (prefill_frames {self.prefill_frames})")
-        for name in ("frozen_noise", "push_every"):
+        for name in ("frozen_noise", "push_every", "student"):
             if getattr(self, name) and self.learn_frames is None:
-                raise ConfigError(f"{name} perturbs the frozen teacher's actions; it needs "
-                                  "learn_frames")
+                raise ConfigError(f"{name} changes who acts once the teacher is frozen; it "
+                                  "needs learn_frames")
         if self.freeze_best and (self.learn_frames is None or self.eval_episodes < 1):
             raise ConfigError("freeze_best needs learn_frames and eval_episodes >= 1 (it "
                               "freezes the best evaluated teacher when learning ends)")
@@ -387,6 +395,41 @@ def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str
     return act
 
 
+def student_policy(agent: Agent, renderer: DRRenderer, seed: int) -> Policy:
+    """A distilled agent as a rollout policy for one episode: it renders each step itself (one
+    view under ``renderer``'s DR, drawn from ``seed``) and acts on that image, filtering its
+    latent across the episode's steps (reset at ``is_first``)."""
+    sampler = renderer.sampler(seed)
+    state: AgentState | None = None
+
+    def act(step: Step) -> np.ndarray:
+        nonlocal state
+        if step.is_first:
+            sampler.begin_episode(seed)
+            state = None
+        image = renderer.render(step.physics, sampler.sample())[0]
+        with torch.no_grad():
+            action, state = agent.act(image, state)
+        return action
+
+    return act
+
+
+def load_acting_student(config: CollectConfig, device: torch.device) -> Agent:
+    """``config.student``'s bundle, refused unless it acts on this run's task and repeat."""
+    path = Path(config.student)
+    if not path.is_file():
+        raise CollectError(f"the student agent {config.student!r} does not exist; pass an "
+                           "agent.pt written by twist-distil")
+    agent = Agent.load(path, device)
+    for name, want in (("task", config.task), ("action_repeat", config.action_repeat)):
+        have = agent.info.get(name)
+        if have != want:
+            raise CollectError(f"the student agent {config.student!r} has {name} {have!r}, "
+                               f"but this run collects with {want!r}")
+    return agent
+
+
 def run_dir(out: str | os.PathLike[str], shard: str) -> Path:
     return Path(out) / "collect" / shard
 
@@ -410,8 +453,19 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
     teacher_config = config.teacher_config(env.state_dim, env.action_dim)
     torch_device = torch.device(device)
     make_renderer = RenderProcess if render_process else DRRenderer
-    with make_renderer(config.task, dr_config, config.image_size, config.views,
-                       config.supersample) as renderer:
+    with ExitStack() as stack:
+        renderer = stack.enter_context(make_renderer(config.task, dr_config, config.image_size,
+                                                     config.views, config.supersample))
+        student = None
+        if config.student:
+            agent = load_acting_student(config, torch_device)
+            # The student sees what evaluation shows it: its own image size and supersampling,
+            # the run's DR drawn once per episode.
+            own_view = stack.enter_context(DRRenderer(
+                config.task, dataclasses.replace(dr_config, resample="episode"),
+                agent.info.get("image_size") or config.image_size, views=1,
+                supersample=agent.info.get("supersample") or 1))
+            student = (agent, own_view)
         folder.mkdir(parents=True, exist_ok=True)
         if path.exists():
             writer = ShardWriter.resume(path)
@@ -420,7 +474,7 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
             writer = ShardWriter.create(out, shard, simulated_spec(env, renderer, extra))
         with writer:
             run = _Run(out, path, folder, config, teacher_config, env, renderer, writer, seed,
-                       torch_device)
+                       torch_device, student)
             return run.loop(on_progress)
 
 
@@ -447,7 +501,7 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     if resume and stored.exists():
         before = json.loads(stored.read_text())["collect"]
         extendable = ("frames", "learn_frames", "freeze_best", "frozen_noise", "push_every",
-                      "push_steps")
+                      "push_steps", "student")
         refuse_resume(resume_conflicts(before, config, extendable), CollectError,
                       "--steps and --set " + ", ".join(extendable[1:]))
 
@@ -457,8 +511,10 @@ class _Run:
 
     def __init__(self, out: Path, path: Path, folder: Path, config: CollectConfig,
                  teacher_config: TeacherConfig, env: TaskEnv, renderer: FrameRenderer,
-                 writer: ShardWriter, seed: int, device: torch.device) -> None:
+                 writer: ShardWriter, seed: int, device: torch.device,
+                 student: tuple[Agent, DRRenderer] | None = None) -> None:
         self.out, self.path, self.folder, self.config = out, path, folder, config
+        self.student = student
         self.env, self.renderer, self.writer, self.seed, self.device = (env, renderer, writer,
                                                                         seed, device)
         self.dr_sampler = renderer.sampler(seed)
@@ -553,6 +609,10 @@ class _Run:
         episode_seed = derived_seed(self.seed, index)
         if frames < c.prefill_frames:
             policy, name, step = random_policy(self.env.action_dim, episode_seed), "random", -1
+        elif c.acts_frozen(frames) and self.student is not None:
+            agent, own_view = self.student
+            policy = student_policy(agent, own_view, derived_seed(episode_seed, 8))
+            name, step = "student", -1
         else:
             frozen = c.acts_frozen(frames)
             pushes = (Pushes(c.push_every, c.push_steps, self.env.action_dim,
