@@ -199,7 +199,7 @@ def test_short_run_improves_agreement_and_writes_an_agent(distil_inputs, tmp_pat
     dataset, teacher = distil_inputs
     # From scratch, as the paper: copied dynamics would start it close to the target.
     config = distil_preset("tiny", steps=40, eval_every=20, checkpoint_every=20,
-                           snapshot_every=40, copy_dynamics=False)
+                           snapshot_every=20, copy_dynamics=False)
     summary = distil(dataset, tmp_path / "run", config, teacher=teacher)
     first, last = summary.heldout_first, summary.heldout_last
     assert summary.updates == 40
@@ -234,6 +234,17 @@ def test_short_run_improves_agreement_and_writes_an_agent(distil_inputs, tmp_pat
             latent = rssm.post_step(latent, previous, embed, torch.tensor([i == 0]))
             previous = actor(rssm.feature(latent)).mode.clamp(-1, 1)
             np.testing.assert_allclose(actions[i], previous[0].numpy(), atol=1e-6)
+
+    # Each snapshot comes with a deployable bundle of that snapshot's student.
+    for updates in (20, 40):
+        snapshot = load_student(tmp_path / "run" / f"student-{updates:08d}.pt")[0].state_dict()
+        bundled = Agent.load(tmp_path / "run" / f"agent-{updates:08d}.pt")
+        assert bundled.info["student_updates"] == updates
+        weights = bundled.student.state_dict()
+        assert weights.keys() == snapshot.keys()
+        assert all(torch.equal(weights[k], snapshot[k]) for k in snapshot)
+    early = Agent.load(tmp_path / "run" / "agent-00000020.pt").student.state_dict()
+    assert not all(torch.equal(early[k], student.state_dict()[k]) for k in early)
 
 
 def test_heldout_metrics_are_fixed_for_a_fixed_student(distil_inputs) -> None:

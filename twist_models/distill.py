@@ -3,7 +3,8 @@
 Never touches a simulator: it reads D and a frozen teacher checkpoint and writes a run folder
 ``<out>/``: ``config.json``, ``metrics.csv`` (training terms, updates/s, data-wait share),
 ``heldout.csv`` and its plot ``latent-agreement.png``, ``latest.pt`` (resume point),
-``student-<updates>.pt`` snapshots, the final ``student.pt``, the deployable ``agent.pt``
+``student-<updates>.pt`` snapshots each with its deployable ``agent-<updates>.pt``, the final
+``student.pt``, the deployable ``agent.pt``
 (:class:`twist_models.agent.Agent`) and ``summary.json``.
 
 Decisions (the README's "twist-distil" section says more):
@@ -569,13 +570,10 @@ class _Run:
                 self._checkpoint(self.out / "latest.pt")
             if self.updates % c.snapshot_every == 0:
                 self._checkpoint(self.out / f"student-{self.updates:08d}.pt")
+                self._bundle(self.out / f"agent-{self.updates:08d}.pt")
         self.seconds += time.perf_counter() - wall
         student = self._checkpoint(self.out / FINAL_STUDENT)
-        agent = self.out / AGENT
-        if self.writes:
-            info = {**self.data.spec.image_agent_info(), "dataset": str(self.dataset_path),
-                    "teacher": str(self.teacher_path), "student_updates": self.updates}
-            Agent.from_models(self.student, self.teacher, info).save(agent)
+        agent = self._bundle(self.out / AGENT)
         summary = DistilSummary(
             out=self.out, student=student, agent=agent, teacher=self.teacher_path,
             updates=self.updates, seconds=round(self.seconds, 2),
@@ -585,6 +583,17 @@ class _Run:
         if self.writes:
             (self.out / "summary.json").write_text(json.dumps(summary.to_json(), indent=2))
         return summary
+
+    def _bundle(self, path: Path) -> Path:
+        # Every snapshot is deployable too: the return need not rise with the updates (it fell
+        # from 559 to 403 between 800 and 2,000 in one run while the latents kept improving;
+        # docs/experiments.md, "Thirteenth session"), so the update count is worth choosing
+        # by evaluating the snapshots on episodes other than the reported ones.
+        if self.writes:
+            info = {**self.data.spec.image_agent_info(), "dataset": str(self.dataset_path),
+                    "teacher": str(self.teacher_path), "student_updates": self.updates}
+            Agent.from_models(self.student, self.teacher, info).save(path)
+        return path
 
     def _checkpoint(self, path: Path) -> Path:
         if self.writes:
