@@ -398,15 +398,13 @@ def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str
 def student_policy(agent: Agent, renderer: DRRenderer, seed: int) -> Policy:
     """A distilled agent as a rollout policy for one episode: it renders each step itself (one
     view under ``renderer``'s DR, drawn from ``seed``) and acts on that image, filtering its
-    latent across the episode's steps (reset at ``is_first``)."""
+    latent across the episode's steps."""
     sampler = renderer.sampler(seed)
+    sampler.begin_episode(seed)
     state: AgentState | None = None
 
     def act(step: Step) -> np.ndarray:
         nonlocal state
-        if step.is_first:
-            sampler.begin_episode(seed)
-            state = None
         image = renderer.render(step.physics, sampler.sample())[0]
         with torch.no_grad():
             action, state = agent.act(image, state)
@@ -607,14 +605,14 @@ class _Run:
         c = self.config
         index, frames = self.writer.n_episodes, self.frames
         episode_seed = derived_seed(self.seed, index)
+        frozen = c.acts_frozen(frames)
         if frames < c.prefill_frames:
             policy, name, step = random_policy(self.env.action_dim, episode_seed), "random", -1
-        elif c.acts_frozen(frames) and self.student is not None:
+        elif frozen and self.student is not None:
             agent, own_view = self.student
             policy = student_policy(agent, own_view, derived_seed(episode_seed, 8))
             name, step = "student", -1
         else:
-            frozen = c.acts_frozen(frames)
             pushes = (Pushes(c.push_every, c.push_steps, self.env.action_dim,
                              derived_seed(episode_seed, 7)) if frozen and c.push_every else None)
             policy = teacher_policy(self.teacher, self.env.action_dim, self.device,
