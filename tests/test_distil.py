@@ -312,6 +312,8 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
         "one final teacher": ["--out", str(tmp_path / "d")],  # synthetic data has none
         "action_weight must be >= 0, got -1": ["--teacher", str(teacher), "--set",
                                                "action_weight=-1", "--out", str(tmp_path / "g")],
+        "encoder_norm must be one of none, layer, got 'batch'": [
+            "--teacher", str(teacher), "--set", "encoder_norm=batch", "--out", str(tmp_path / "i")],
         "KEY one of": ["--teacher", str(teacher), "--set", "nope=1", "--out",
                        str(tmp_path / "h")],
     }
@@ -424,12 +426,16 @@ def test_stacked_frames_repeat_at_episode_starts_and_agree_step_by_step() -> Non
     torch.testing.assert_close(torch.stack(steps, 1), stack_frames(sequence, starts, 3))
 
 
-@pytest.mark.parametrize("frames", [1, 3])
-def test_the_agent_acting_step_by_step_filters_as_the_student_does_on_windows(frames) -> None:
+@pytest.mark.parametrize(("frames", "norm"), [(1, "none"), (3, "layer")])
+def test_the_agent_acting_step_by_step_filters_as_the_student_does_on_windows(
+        frames, norm, tmp_path) -> None:
     torch.manual_seed(0)
     teacher = Teacher(teacher_preset("tiny", 5, 1))
-    student = Student(student_preset("tiny", teacher.config, image_size=64, frames=frames))
-    agent = Agent.from_models(student, teacher).eval()
+    student = Student(student_preset("tiny", teacher.config, image_size=64, frames=frames,
+                                     norm=norm))
+    # Through a saved bundle: its config must rebuild the same encoder.
+    agent = Agent.load(Agent.from_models(student, teacher).save(tmp_path / "agent.pt")).eval()
+    assert agent.student.config.cnn.norm == norm
     images = torch.randint(0, 256, (1, 5, 64, 64, 3), dtype=torch.uint8)
     torch.manual_seed(1)  # both paths draw their latent samples in the same order
     state, logits, actions = None, [], []

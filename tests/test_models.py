@@ -44,6 +44,23 @@ def test_image_cnn_shapes_match_dreamerv2() -> None:
     assert decoder(torch.zeros(2, 3, 1224)).shape == (2, 3, 64, 64, 3)
 
 
+def test_a_layer_normed_cnn_ignores_the_scale_of_its_convolutions() -> None:
+    # Normalising each image's activations makes the encoder indifferent to a positive
+    # rescaling of a convolution's weights and bias; DreamerV2's plain CNN is not.
+    image = torch.randint(0, 256, (2, 64, 64, 3), dtype=torch.uint8)
+    for norm, invariant in (("layer", True), ("none", False)):
+        torch.manual_seed(0)
+        encoder = ImageEncoder(CNNConfig(depth=4, norm=norm))
+        before = encoder(image)
+        conv = encoder.net[0]
+        with torch.no_grad():
+            conv.weight.mul_(3.0)
+            conv.bias.mul_(3.0)
+        assert torch.allclose(encoder(image), before, atol=1e-4) == invariant, norm
+    with pytest.raises(ConfigError, match="'batch'"):
+        CNNConfig(norm="batch")
+
+
 def test_rssm_shapes_with_extra_leading_dims() -> None:
     wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
     rssm, c = wm.rssm, wm.config.rssm

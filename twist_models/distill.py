@@ -54,6 +54,7 @@ from twist_models.checkpoint import (
     save_checkpoint,
 )
 from twist_models.config import (
+    CNN_NORMS,
     PRESETS,
     OptimConfig,
     StudentConfig,
@@ -136,6 +137,9 @@ class DistilConfig:
     frames: int = 1
     """Images the student's posterior reads per step, each encoded alone: the current one and
     the ``frames - 1`` before it (1: the paper's single image; 2 shows it motion)."""
+    encoder_norm: str = "none"
+    """Normalisation in the student's CNN: ``none`` (DreamerV2's, the paper's) or ``layer``
+    (see :class:`~twist_models.config.CNNConfig`)."""
     view: int | None = None
     """Camera view shown at every step; None: a random one of the K per step."""
     lr: float = 3e-4
@@ -167,6 +171,9 @@ class DistilConfig:
                              "post_weight", "imagined_weight", "action_weight", "workers")
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
+        if self.encoder_norm not in CNN_NORMS:
+            raise ConfigError(f"encoder_norm must be one of {', '.join(CNN_NORMS)}, got "
+                              f"{self.encoder_norm!r}")
         if self.view is not None and self.view < 0:
             raise ConfigError(f"view must be >= 0, got {self.view}")
         if self.freeze_dynamics and not self.copy_dynamics:
@@ -369,7 +376,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     teacher_path = Path(teacher) if teacher is not None else find_teacher(dataset_path)
     teacher_model, _ = load_teacher(teacher_path, data.spec.state_dim, data.spec.action_dim)
     student_config = student_preset(config.student, teacher_model.config, data.spec.image_height,
-                                    config.frames)
+                                    config.frames, config.encoder_norm)
     _check_output(out, config, student_config, resume)
     rank, world = _rank_and_world()
     run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,

@@ -80,7 +80,10 @@ class ImageEncoder(nn.Module):
         channels, size = 3, config.image_size
         for i, kernel in enumerate(config.encoder_kernels):
             out = config.depth * 2**i
-            layers += [nn.Conv2d(channels, out, kernel, stride=2), nn.ELU()]
+            layers.append(nn.Conv2d(channels, out, kernel, stride=2))
+            if config.norm == "layer":  # one group: normalised over channels and pixels
+                layers.append(nn.GroupNorm(1, out))
+            layers.append(nn.ELU())
             channels, size = out, _conv_out(size, kernel)
         if size < 1:
             raise ValueError(f"image size {config.image_size} is too small for kernels "
