@@ -21,18 +21,13 @@ import time
 
 import numpy as np
 import torch
+from image_state_probe import frames  # this folder's sibling script
 from torch.nn import functional
 
-from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.config import CNN_NORMS, PRESETS, CNNConfig
 from twist_models.networks import ImageEncoder
-
-
-def frames(data: MatchingDataset, steps: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
-    out = np.empty((steps.size, *data.spec.image_shape), np.uint8)
-    data.read_frames(steps, rng.integers(0, data.spec.views, steps.size), out)
-    return torch.as_tensor(out)
 
 
 def main() -> None:
@@ -54,10 +49,7 @@ def main() -> None:
 
     data = open_dataset(args.dataset)
     value = data.column("state")[:, args.component]
-    starts = np.r_[0, np.cumsum(data.episode_lengths)[:-1]]
-    held = np.zeros(value.size, bool)
-    for episode in np.flatnonzero(heldout_episodes(data.n_episodes, args.holdout_every)):
-        held[starts[episode]:starts[episode] + data.episode_lengths[episode]] = True
+    held = np.repeat(heldout_episodes(data.n_episodes, args.holdout_every), data.episode_lengths)
     leaning = (np.abs(value) >= args.low) & (np.abs(value) <= args.high)
     positive = np.flatnonzero(leaning & ~held & (value > 0))
     negative = np.flatnonzero(leaning & ~held & (value < 0))
@@ -71,7 +63,7 @@ def main() -> None:
         torch.manual_seed(args.seed)
         rng = np.random.default_rng(args.seed)
         encoder = ImageEncoder(dataclasses.replace(PRESETS[args.preset].get("cnn", CNNConfig()),
-                                                   norm=norm))
+                                                   image_size=data.spec.image_height, norm=norm))
         head = torch.nn.Linear(encoder.out_dim, 1)
         optimiser = torch.optim.Adam([*encoder.parameters(), *head.parameters()], args.lr)
         accuracy, start = [], time.perf_counter()

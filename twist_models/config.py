@@ -34,6 +34,13 @@ def require_non_negative(obj: object, *names: str) -> None:
             raise ConfigError(f"{type(obj).__name__}.{name} must be >= 0, got {value}")
 
 
+def require_choice(obj: object, name: str, choices: tuple[str, ...]) -> None:
+    """Raise ConfigError naming field ``name`` of ``obj`` unless its value is in ``choices``."""
+    value = getattr(obj, name)
+    if value not in choices:
+        raise ConfigError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class RSSMConfig:
     """Recurrent state-space model sizes and KL settings."""
@@ -100,8 +107,7 @@ class CNNConfig:
         object.__setattr__(self, "encoder_kernels", tuple(self.encoder_kernels))
         object.__setattr__(self, "decoder_kernels", tuple(self.decoder_kernels))
         require_positive(self, "depth", "image_size")
-        if self.norm not in CNN_NORMS:
-            raise ConfigError(f"cnn norm must be one of {', '.join(CNN_NORMS)}, got {self.norm!r}")
+        require_choice(self, "norm", CNN_NORMS)
 
 
 ACTOR_GRADS = ("dynamics", "reinforce")
@@ -148,12 +154,8 @@ class ActorCriticConfig:
 
     def __post_init__(self) -> None:
         require_positive(self, "horizon", "slow_target_every", "actor_lr", "critic_lr", "min_std")
-        if self.critic_head not in CRITIC_HEADS:
-            raise ConfigError(f"critic_head must be one of {', '.join(CRITIC_HEADS)}, "
-                              f"got {self.critic_head!r}")
-        if self.actor_grad not in ACTOR_GRADS:
-            raise ConfigError(f"actor_grad must be one of {', '.join(ACTOR_GRADS)}, "
-                              f"got {self.actor_grad!r}")
+        require_choice(self, "critic_head", CRITIC_HEADS)
+        require_choice(self, "actor_grad", ACTOR_GRADS)
         if self.imag_starts < 0:
             raise ConfigError(f"imag_starts must be >= 0 (0 = every state), got {self.imag_starts}")
         if not 0 < self.discount <= 1 or not 0 <= self.lambda_ <= 1:

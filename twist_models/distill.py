@@ -59,6 +59,7 @@ from twist_models.config import (
     OptimConfig,
     StudentConfig,
     from_json,
+    require_choice,
     require_non_negative,
     require_positive,
     student_preset,
@@ -171,9 +172,7 @@ class DistilConfig:
                              "post_weight", "imagined_weight", "action_weight", "workers")
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
-        if self.encoder_norm not in CNN_NORMS:
-            raise ConfigError(f"encoder_norm must be one of {', '.join(CNN_NORMS)}, got "
-                              f"{self.encoder_norm!r}")
+        require_choice(self, "encoder_norm", CNN_NORMS)
         if self.view is not None and self.view < 0:
             raise ConfigError(f"view must be >= 0, got {self.view}")
         if self.freeze_dynamics and not self.copy_dynamics:
