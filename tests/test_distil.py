@@ -30,6 +30,7 @@ from twist_models.distill import (
     distil_preset,
     latent_agreement,
     load_student,
+    stored_config,
 )
 from twist_models.losses import distillation_loss, imagined_distillation_loss
 from twist_models.runlog import append_csv, resume_conflicts
@@ -314,6 +315,8 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
                                                "action_weight=-1", "--out", str(tmp_path / "g")],
         "encoder_norm must be one of none, layer, got 'batch'": [
             "--teacher", str(teacher), "--set", "encoder_norm=batch", "--out", str(tmp_path / "i")],
+        "rare_states must be >= 0, got -1": ["--teacher", str(teacher), "--set",
+                                             "rare_states=-1", "--out", str(tmp_path / "j")],
         "KEY one of": ["--teacher", str(teacher), "--set", "nope=1", "--out",
                        str(tmp_path / "h")],
     }
@@ -388,6 +391,15 @@ def test_a_run_stored_before_a_config_field_existed_resumes_under_its_default() 
     stored["length"] = 9
     assert resume_conflicts(stored, config, ("steps",)) == [
         f"length was 9, now {config.length}"]
+
+
+def test_rare_state_priority_reaches_training_windows_only(distil_inputs, tmp_path) -> None:
+    dataset, teacher_path = distil_inputs
+    config = distil_preset("tiny", steps=3, rare_states=2.0)
+    assert config.sampler("train", 0).rare_states == 2.0
+    assert config.sampler("heldout", 0).rare_states == 0.0  # agreement stays comparable
+    summary = distil(dataset, tmp_path / "rare", config, teacher=teacher_path)
+    assert summary.updates == 3 and stored_config(tmp_path / "rare").rare_states == 2.0
 
 
 def test_frozen_dynamics_train_only_the_encoder_and_posterior(distil_inputs, tmp_path) -> None:

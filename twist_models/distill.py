@@ -143,6 +143,10 @@ class DistilConfig:
     (see :class:`~twist_models.config.CNNConfig`)."""
     view: int | None = None
     """Camera view shown at every step; None: a random one of the K per step."""
+    rare_states: float = 0.0
+    """Draw training windows favouring D's rarely visited states, with this exponent (see
+    :func:`twist_data.sampler.state_rarity`; 0: uniform, the paper; held-out windows stay
+    uniform)."""
     lr: float = 3e-4
     """Adam learning rate of the student (DreamerV2's world-model rate)."""
     optim: OptimConfig = field(default_factory=OptimConfig)
@@ -169,7 +173,8 @@ class DistilConfig:
         require_positive(self, "steps", "batch_size", "length", "horizon", "frames", "lr",
                          "heldout_windows", "eval_every", "checkpoint_every", "snapshot_every")
         require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
-                             "post_weight", "imagined_weight", "action_weight", "workers")
+                             "post_weight", "imagined_weight", "action_weight", "workers",
+                             "rare_states")
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
@@ -182,7 +187,8 @@ class DistilConfig:
     def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
         return SamplerConfig(length=self.length, batch_size=batch_size or self.batch_size,
                              view=self.view, seed=seed, keys=KEYS,
-                             holdout_every=self.holdout_every, split=split)
+                             holdout_every=self.holdout_every, split=split,
+                             rare_states=self.rare_states if split == "train" else 0.0)
 
 
 DISTIL_PRESETS: dict[str, DistilConfig] = {
