@@ -59,9 +59,9 @@ def state_rarity(states: np.ndarray, bins: int = 64) -> np.ndarray:
         if high <= low:
             continue
         varying += 1
-        counts, edges = np.histogram(column, bins=bins, range=(low, high))
-        width = (edges[1] - edges[0]) / column.std()
-        which = np.clip(np.searchsorted(edges, column, side="right") - 1, 0, bins - 1)
+        which = np.minimum(((column - low) / (high - low) * bins).astype(np.int64), bins - 1)
+        counts = np.bincount(which, minlength=bins)
+        width = (high - low) / bins / column.std()
         log_density += np.log(counts[which] / (len(column) * width))
     return np.exp(-log_density / max(varying, 1))
 
