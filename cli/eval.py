@@ -23,6 +23,7 @@ from twist_models.evaluation import (
     load_agent,
     run_evaluation,
 )
+from twist_models.statistics import format_paired
 
 app = new_app()
 
@@ -67,6 +68,8 @@ def main(
         help="Simulator steps per agent step [the agents' own; 2 if none says].")] = None,
     supersample: Annotated[int | None, typer.Option(
         help="Render at this multiple and downsample [each agent's training data's].")] = None,
+    paired_with: Annotated[str | None, typer.Option(
+        help="Agent NAME to compare every other agent with, episode by episode.")] = None,
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
     agents = parse_agents(agent, device)
@@ -80,15 +83,22 @@ def main(
                         action_repeat=action_repeat, supersample=supersample,
                         backgrounds=None if backgrounds is None else str(backgrounds))
     seed_list = parse_list(seeds, int, "--seeds")
-    summary = run_evaluation(agents, config, seed_list, out_dir, video, device)
+    summary = run_evaluation(agents, config, seed_list, out_dir, video, device,
+                             against=paired_with)
     table = Table(title=f"{task}, DR {dr}, {episodes} episodes x {len(seed_list)} seeds")
-    for column in ("agent", "kind", "mean ± std (seeds)", "normalised IQM [95% CI]"):
+    columns = ["agent", "kind", "mean ± std (seeds)", "normalised IQM [95% CI]"]
+    if paired_with is not None:
+        columns.append(f"paired vs {paired_with}: mean ± s.e. (better)")
+    for column in columns:
         table.add_column(column)
     for name, s in summary["agents"].items():
         iqm = ("" if "normalised_iqm" not in s else
                f"{s['normalised_iqm']:.3f} [{s['normalised_iqm_ci95'][0]:.3f}, "
                f"{s['normalised_iqm_ci95'][1]:.3f}]")
-        table.add_row(name, s["kind"], f"{s['mean']:.1f} ± {s['std_over_seeds']:.1f}", iqm)
+        cells = [name, s["kind"], f"{s['mean']:.1f} ± {s['std_over_seeds']:.1f}", iqm]
+        if paired_with is not None:
+            cells.append(format_paired(s["paired"]) if "paired" in s else "")
+        table.add_row(*cells)
     out.print(table)
     out.print(json.dumps(summary))
 

@@ -25,8 +25,9 @@ from twist_models.evaluation import (
     evaluate,
     load_agent,
     run_evaluation,
+    summarise,
 )
-from twist_models.statistics import iqm, stratified_bootstrap
+from twist_models.statistics import format_paired, iqm, paired_difference, stratified_bootstrap
 from twist_models.teacher import Teacher, save_teacher
 
 
@@ -57,6 +58,47 @@ def test_bootstrap_keeps_a_stratum_of_one_score_in_every_resample() -> None:
     assert interval.estimate == pytest.approx(0.85)
     assert 0.8 <= interval.low <= 0.85 <= interval.high <= 1.0
     assert interval.high > interval.low
+
+
+def test_paired_difference_of_known_returns() -> None:
+    # Differences 2, 0, 6: mean 8/3, sample variance ((2/3)^2 + (8/3)^2 + (10/3)^2) / 2 = 28/3,
+    # standard error sqrt(28/9); the 95% interval is mean ± t(0.975, 2 dof) = 4.302653 s.e.
+    paired = paired_difference(np.array([3.0, 5, 10]), np.array([1.0, 5, 4]))
+    assert paired.mean == pytest.approx(8 / 3)
+    assert paired.standard_error == pytest.approx(np.sqrt(28 / 9))
+    assert paired.ci95 == pytest.approx((8 / 3 - 4.302653 * np.sqrt(28 / 9),
+                                         8 / 3 + 4.302653 * np.sqrt(28 / 9)), rel=1e-5)
+    assert (paired.better, paired.pairs) == (2, 3)  # the tie is not better
+    assert format_paired(paired.as_dict()) == "+2.7 ± 1.8 (2/3)"
+    single = paired_difference(np.array([1.0]), np.array([4.0]))
+    assert (single.mean, single.standard_error, single.ci95) == (-3.0, None, None)
+    assert format_paired(single.as_dict()) == "-3.0 (0/1)"
+    steady = paired_difference(np.array([2.0, 3.0]), np.array([1.0, 2.0]))
+    assert (steady.standard_error, steady.ci95) == (0.0, (1.0, 1.0))
+    with pytest.raises(ConfigError, match="got 3 and 2"):
+        paired_difference(np.ones(3), np.ones(2))
+
+
+def test_summary_pairs_every_agent_with_the_named_one_episode_by_episode() -> None:
+    # Rows in different orders per agent: pairing must follow (seed, episode), not position.
+    rows = [("a", 0, 0, 10.0), ("a", 0, 1, 20.0), ("a", 1, 0, 30.0),
+            ("b", 1, 0, 36.0), ("b", 0, 1, 21.0), ("b", 0, 0, 7.0)]
+    table = pd.DataFrame([{"agent": a, "kind": "student", "seed": s, "episode": e,
+                           "episode_seed": 100 * s + e, "return": r, "steps": 5}
+                          for a, s, e, r in rows])
+    summary = summarise(table, EvalConfig(task="cartpole-balance"), against="a")
+    paired = summary["agents"]["b"]["paired"]
+    assert paired["against"] == "a" and paired["pairs"] == 3 and paired["better"] == 2
+    assert paired["mean"] == pytest.approx((-3 + 1 + 6) / 3)
+    assert "paired" not in summary["agents"]["a"]
+    assert "paired" not in summarise(table, EvalConfig(task="cartpole-balance"))["agents"]["b"]
+
+
+def test_pairing_with_an_agent_not_evaluated_is_refused_before_any_episode(tmp_path) -> None:
+    with pytest.raises(EvalError, match="'twist', is not among the agents \\(zero\\)"):
+        run_evaluation({"zero": "zero"}, EvalConfig(task="cartpole-balance"), [0],
+                       tmp_path / "eval", against="twist")
+    assert not (tmp_path / "eval").exists()
 
 
 def _constant(value: float):
@@ -155,7 +197,9 @@ def test_bad_inputs_are_refused(gl, agents, tmp_path) -> None:
             (["--agent", str(agents["other"]), "--task", "cartpole-balance"], "'cup-catch'"),
             (["--agent", str(agents["agent"]), "--backgrounds", str(empty), "--episodes", "1"],
              "no-images"),
-            (["--agent", str(tmp_path / "missing.pt")], "does not exist")):
+            (["--agent", str(tmp_path / "missing.pt")], "does not exist"),
+            (["--agent", str(agents["agent"]), "--paired-with", "nobody"],
+             "'nobody', is not among the agents")):
         result = cli(*args)
         assert result.returncode == 2, (args, result.stderr)
         assert message in result.stderr and "Traceback" not in result.stderr, result.stderr
@@ -206,12 +250,16 @@ def test_reference_agents_score_what_their_actions_earn(gl, agents, tmp_path) ->
     result = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent",
                              f"oracle={agents['teacher']}", "--agent", "zero", "--agent",
                              "noise=random", "--episodes", "1", "--max-steps", "10",
-                             "--out", str(tmp_path)], capture_output=True, text=True,
-                            timeout=300)
+                             "--paired-with", "zero", "--out", str(tmp_path)],
+                            capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
     table = pd.read_csv(tmp_path / "episodes.csv")
     assert dict(zip(table["agent"], table["kind"], strict=True)) == {
         "oracle": "oracle", "zero": "reference", "noise": "reference"}
+    returns = dict(zip(table["agent"], table["return"], strict=True))
+    summary = json.loads((tmp_path / "summary.json").read_text())["agents"]
+    assert summary["noise"]["paired"]["mean"] == pytest.approx(returns["noise"] - returns["zero"])
+    assert "paired" not in summary["zero"]
     alone = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent", "zero",
                             "--out", str(tmp_path / "alone")], capture_output=True, text=True,
                            timeout=300)

@@ -18,14 +18,17 @@ from twist_data.errors import ConfigError, UnknownTaskError
 from twist_data.reader import open_dataset
 from twist_models.report import (
     AGENTS,
+    EPISODE_RESULT_COLUMNS,
     RESULT_COLUMNS,
     ReportConfig,
     ReportError,
     aggregate,
     build_report,
     markdown_table,
+    paired_with,
     plot_iqm,
     run_reproduction,
+    run_scores,
 )
 
 
@@ -59,6 +62,32 @@ def test_table_statistics_match_hand_computed_values() -> None:
     assert "| cartpole-balance (ours) | 1000.0 ± 81.6 | 900.0 ± 81.6 |" in table
     assert "| cartpole-balance (paper, `paper` scale) | 992.9 | 954.5 |" in table
     assert "| TWIST | 0.875 [" in table
+
+
+def test_agents_are_paired_with_twist_episode_by_episode_within_each_task() -> None:
+    # cartpole: TWIST scores 100, 200 on seed 0's episodes 0, 1 and 300 on seed 1's episode 0;
+    # Dreamer 90, 230, 280, so its differences are -10, +30, -20. cup-catch has no TWIST run.
+    rows = [("cartpole-balance", 0, "twist", 0, 100.0), ("cartpole-balance", 0, "twist", 1, 200.0),
+            ("cartpole-balance", 1, "twist", 0, 300.0), ("cartpole-balance", 1, "dreamer-dr", 0, 280.0),
+            ("cartpole-balance", 0, "dreamer-dr", 1, 230.0), ("cartpole-balance", 0, "dreamer-dr", 0, 90.0),
+            ("cup-catch", 0, "dreamer-dr", 0, 5.0)]
+    episodes = pd.DataFrame(rows, columns=EPISODE_RESULT_COLUMNS)
+    paired = paired_with(episodes)
+    assert set(paired) == {"cartpole-balance"}
+    dreamer = paired["cartpole-balance"]["dreamer-dr"]
+    assert dreamer["mean"] == pytest.approx(0.0) and (dreamer["better"], dreamer["pairs"]) == (1, 3)
+    # sample std of (-10, 30, -20) is sqrt(700), so the standard error is sqrt(700 / 3)
+    assert dreamer["standard_error"] == pytest.approx(np.sqrt(700 / 3))
+    scores = run_scores(episodes)
+    twist = scores[(scores.agent == "twist") & (scores.seed == 0)]
+    assert float(twist["score"].iloc[0]) == 150.0 and int(twist["episodes"].iloc[0]) == 2
+
+    summary = aggregate(scores[scores.task == "cartpole-balance"].assign(
+        agent=lambda d: d.agent.replace({"dreamer-dr": "oracle"})))
+    summary["paired"] = {"cartpole-balance": {"oracle": dreamer}}
+    table = markdown_table(summary)
+    assert "| cartpole-balance | Oracle (teacher on states) | +0.0 ± 15.3 | [" in table
+    assert "| 1/3 |" in table
 
 
 def test_aggregate_refuses_a_task_without_oracle() -> None:
@@ -154,6 +183,10 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
     assert summary["per_task"]["cartpole-balance"]["oracle"]["mean"] == pytest.approx(oracle)
     assert (tmp_path / "iqm.png").stat().st_size > 0
     assert "TWIST w/o action noise" in (tmp_path / "report.md").read_text()
+    twist_return = episodes.loc[episodes["agent"] == "twist", "return"].iloc[0]
+    paired_oracle = summary["paired"]["cartpole-balance"]["oracle"]
+    assert paired_oracle["mean"] == pytest.approx(oracle - twist_return)
+    assert paired_oracle["pairs"] == 1 and paired_oracle["standard_error"] is None
 
     # A second run finds every stage done and only re-aggregates.
     stamps = {p: p.stat().st_mtime_ns for p in root.rglob("*.pt")}

@@ -37,7 +37,7 @@ from twist_models.collect import teacher_policy
 from twist_models.config import require_positive
 from twist_models.curves import plot_returns
 from twist_models.networks import single_threaded
-from twist_models.statistics import stratified_bootstrap
+from twist_models.statistics import PairedDifference, paired_difference, stratified_bootstrap
 from twist_models.teacher import Teacher, teacher_from_checkpoint
 
 
@@ -294,17 +294,22 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                    config: EvalConfig,
                    seeds: Sequence[int], out: str | os.PathLike[str], videos: int = 0,
                    device: str = "cpu",
-                   on_episode: Callable[[str, EpisodeResult], None] | None = None
-                   ) -> dict[str, Any]:
+                   on_episode: Callable[[str, EpisodeResult], None] | None = None,
+                   against: str | None = None) -> dict[str, Any]:
     """Evaluate every ``name: checkpoint`` (or loaded agent) on the same episodes for each seed and write
     ``episodes.csv``, ``summary.json``, ``returns.png`` and ``videos`` mp4s per agent to
     ``out``. Returns the summary: per agent the mean and std over seeds of the per-seed mean
     return, and, when an oracle (a teacher checkpoint) is among the agents, every agent's
-    oracle-normalised IQM with a 95% bootstrap interval stratified by seed."""
+    oracle-normalised IQM with a 95% bootstrap interval stratified by seed; with ``against``
+    (one of the agents' names), every other agent's paired difference from it, episode by
+    episode."""
     if not agents:
         raise EvalError("no agents to evaluate")
     if not seeds:
         raise EvalError("no seeds to evaluate")
+    if against is not None and against not in agents:
+        raise EvalError(f"the agent to pair against, {against!r}, is not among the agents "
+                        f"({', '.join(agents)})")
     out = Path(out)
     loaded = {name: load_agent(a, device, config.task) if isinstance(a, str | os.PathLike)
               else a for name, a in agents.items()}
@@ -327,7 +332,7 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                             out / f"{name}-seed{seed}-episode{episode}.mp4")
     table = pd.DataFrame(rows, columns=EPISODE_COLUMNS)
     table.to_csv(out / "episodes.csv", index=False)
-    summary = summarise(table, config)
+    summary = summarise(table, config, against)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     plot_returns(table, out / "returns.png", f"{config.task}, DR {config.dr}")
     return summary
@@ -348,7 +353,8 @@ def _keep_frame(frames: dict[int, list[np.ndarray]], videos: int, episode: int,
         frames.setdefault(episode, []).append(frame)
 
 
-def summarise(table: pd.DataFrame, config: EvalConfig) -> dict[str, Any]:
+def summarise(table: pd.DataFrame, config: EvalConfig, against: str | None = None
+              ) -> dict[str, Any]:
     """Per-agent statistics of an ``episodes.csv`` table (see :func:`run_evaluation`)."""
     oracles = table[table["kind"] == "oracle"]
     oracle_mean = float(oracles["return"].mean()) if len(oracles) else None
@@ -366,6 +372,22 @@ def summarise(table: pd.DataFrame, config: EvalConfig) -> dict[str, Any]:
             interval = stratified_bootstrap(strata)
             entry["normalised_iqm"] = interval.estimate
             entry["normalised_iqm_ci95"] = [interval.low, interval.high]
+        if against is not None and name != against:
+            entry["paired"] = {"against": against,
+                               **paired_episodes(table, name, against).as_dict()}
         agents[name] = entry
     return {"task": config.task, "dr": config.dr, "backgrounds": config.backgrounds,
             "episodes_per_seed": config.episodes, "oracle_mean": oracle_mean, "agents": agents}
+
+
+def paired_episodes(table: pd.DataFrame, agent: str, against: str,
+                    on: Sequence[str] = ("seed", "episode")) -> PairedDifference:
+    """``agent``'s returns minus ``against``'s over the episodes both met, matched on ``on``
+    (columns of an ``episodes.csv``-shaped ``table``)."""
+    keys = list(on)
+    pairs = table.loc[table["agent"] == agent, [*keys, "return"]].merge(
+        table.loc[table["agent"] == against, [*keys, "return"]], on=keys,
+        suffixes=("", "_against"))
+    if pairs.empty:
+        raise EvalError(f"agents {agent!r} and {against!r} share no episodes to pair")
+    return paired_difference(pairs["return"].to_numpy(), pairs["return_against"].to_numpy())

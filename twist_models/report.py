@@ -44,7 +44,12 @@ from twist_models.collect import (
 from twist_models.config import require_positive
 from twist_models.curves import figure
 from twist_models.distill import DISTIL_PRESETS, distil, distil_preset
-from twist_models.evaluation import REFERENCE_AGENTS, EvalConfig, run_evaluation
+from twist_models.evaluation import (
+    REFERENCE_AGENTS,
+    EvalConfig,
+    paired_episodes,
+    run_evaluation,
+)
 from twist_models.statistics import stratified_bootstrap
 from twist_models.teacher import FINAL_TEACHER
 
@@ -80,6 +85,9 @@ PAPER_TABLE_I: dict[str, dict[str, float]] = {
     "cup-catch": {"oracle": 936.6, "twist": 856.6, "dreamer-dr": 744.3},
 }
 RESULT_COLUMNS = ("task", "seed", "agent", "score", "episodes")
+EPISODE_RESULT_COLUMNS = ("task", "seed", "agent", "episode", "return")
+#: The column every other agent is compared with, episode by episode.
+PAIRED_AGAINST = "twist"
 
 
 class ReportError(TwistError):
@@ -237,21 +245,49 @@ class _Pipeline:
 
 
 # -- aggregation ------------------------------------------------------------------------------
-def collect_results(out: str | os.PathLike[str],
-                    config: ReportConfig | None = None) -> pd.DataFrame:
-    """One row per (task, seed, agent): the run's score, i.e. its mean evaluation return, read
-    from every ``<task>/seed-<s>/eval/episodes.csv`` under ``out`` (only ``config``'s tasks
-    and seeds when given)."""
-    rows = []
+def collect_episodes(out: str | os.PathLike[str],
+                     config: ReportConfig | None = None) -> pd.DataFrame:
+    """One row per evaluation episode (:data:`EPISODE_RESULT_COLUMNS`), read from every
+    ``<task>/seed-<s>/eval/episodes.csv`` under ``out`` (only ``config``'s tasks and seeds
+    when given)."""
+    frames = []
     for path in sorted(Path(out).glob("*/seed-*/eval/episodes.csv")):
         task, seed = path.parents[2].name, int(path.parents[1].name.removeprefix("seed-"))
         if config is not None and (task not in config.tasks or seed not in config.seeds):
             continue
-        episodes = pd.read_csv(path)
-        for agent, group in episodes.groupby("agent", sort=False):
-            rows.append({"task": task, "seed": seed, "agent": agent,
-                         "score": float(group["return"].mean()), "episodes": len(group)})
-    return pd.DataFrame(rows, columns=RESULT_COLUMNS)
+        frames.append(pd.read_csv(path).assign(task=task, seed=seed))
+    if not frames:
+        return pd.DataFrame(columns=EPISODE_RESULT_COLUMNS)
+    return pd.concat(frames, ignore_index=True)[list(EPISODE_RESULT_COLUMNS)]
+
+
+def run_scores(episodes: pd.DataFrame) -> pd.DataFrame:
+    """One row per (task, seed, agent) of :func:`collect_episodes`' table: the run's score,
+    i.e. its mean evaluation return (:data:`RESULT_COLUMNS`)."""
+    runs = (episodes.groupby(["task", "seed", "agent"], sort=False)["return"]
+            .agg(score="mean", episodes="size").reset_index())
+    runs["score"] = runs["score"].astype(float)
+    return runs[list(RESULT_COLUMNS)]
+
+
+def collect_results(out: str | os.PathLike[str],
+                    config: ReportConfig | None = None) -> pd.DataFrame:
+    """:func:`run_scores` of :func:`collect_episodes`."""
+    return run_scores(collect_episodes(out, config))
+
+
+def paired_with(episodes: pd.DataFrame, against: str = PAIRED_AGAINST
+                ) -> dict[str, dict[str, dict[str, Any]]]:
+    """Per task and agent: the agent's returns minus ``against``'s over the episodes both met
+    (same seed and episode), pooled over seeds; tasks without ``against`` are left out."""
+    paired: dict[str, dict[str, dict[str, Any]]] = {}
+    for task, rows in episodes.groupby("task", sort=False):
+        if against not in set(rows["agent"]):
+            continue
+        paired[str(task)] = {
+            str(agent): paired_episodes(rows, str(agent), against).as_dict()
+            for agent in rows["agent"].unique() if agent != against}
+    return paired
 
 
 def aggregate(results: pd.DataFrame) -> dict[str, Any]:
@@ -292,7 +328,8 @@ def aggregate(results: pd.DataFrame) -> dict[str, Any]:
 
 def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) -> str:
     """Table I in Markdown: one row per task with our mean ± std over seeds, a row with the
-    paper's values beneath it, then the aggregate IQM of normalised scores."""
+    paper's values beneath it, then the aggregate IQM of normalised scores and, when the
+    summary has them (``paired``), the paired differences from TWIST."""
     per_task = summary["per_task"]
     agents = [a for a in AGENTS if any(a in row for row in per_task.values())]
     lines = [f"| Task | {' | '.join(AGENTS[a] for a in agents)} |",
@@ -317,6 +354,19 @@ def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) 
     if summary.get("unnormalised_tasks"):
         lines += ["", "Not normalised, because the oracle's mean score is not positive: "
                   f"{', '.join(summary['unnormalised_tasks'])}."]
+    if summary.get("paired"):
+        lines += ["", f"Paired by episode against {AGENTS[PAIRED_AGAINST]} (same seed and "
+                  "evaluation episode): mean ± standard error of the return differences, "
+                  "[95% t interval], episodes better / pairs.", "",
+                  "| Task | Agent | difference | 95% CI | better |", "|---|---|---|---|---|"]
+        for task, by_agent in summary["paired"].items():
+            for agent in [a for a in AGENTS if a in by_agent]:
+                p = by_agent[agent]
+                spread = "" if p["standard_error"] is None else f" ± {p['standard_error']:.1f}"
+                ci = ("–" if p["ci95"] is None else
+                      f"[{p['ci95'][0]:+.1f}, {p['ci95'][1]:+.1f}]")
+                lines.append(f"| {task} | {AGENTS[agent]} | {p['mean']:+.1f}{spread} | {ci} "
+                             f"| {p['better']}/{p['pairs']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -346,8 +396,10 @@ def build_report(out: str | os.PathLike[str], config: ReportConfig | None = None
     """Aggregate the evaluations under ``out`` into ``results.csv``, ``report.md`` and
     ``iqm.png``; returns the summary of :func:`aggregate`."""
     out = Path(out)
-    results = collect_results(out, config)
+    episodes = collect_episodes(out, config)
+    results = run_scores(episodes)
     summary = aggregate(results)
+    summary["paired"] = paired_with(episodes)
     results.to_csv(out / "results.csv", index=False)
     (out / "report.md").write_text(markdown_table(summary, config))
     plot_iqm(summary, out / "iqm.png")

@@ -3,16 +3,21 @@
 * the interquartile mean (IQM): the mean of the middle 50% of scores, robust to outlier runs;
 * oracle-normalised scores: an agent's return divided by the oracle's on the same setting;
 * a stratified percentile bootstrap confidence interval: each stratum (a task, or a seed) is
-  resampled on its own, so every resample keeps the design's composition.
+  resampled on its own, so every resample keeps the design's composition;
+* paired differences: two agents evaluated on the same seeded episodes differ episode by
+  episode, which removes the episodes' own spread from the comparison (an agent's returns vary
+  more between episodes than two close agents differ on one).
 
 scipy's ``trim_mean`` and ``bootstrap`` do the work (``bootstrap`` with several samples and
-``paired=False`` resamples each one independently: exactly a stratified bootstrap).
+``paired=False`` resamples each one independently: exactly a stratified bootstrap; ``ttest_rel``
+gives the paired interval).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -61,3 +66,50 @@ def stratified_bootstrap(strata: Sequence[np.ndarray], confidence: float = 0.95,
                              rng=np.random.default_rng(seed))
     ci = result.confidence_interval
     return Interval(estimate, float(ci.low), float(ci.high))
+
+
+@dataclass(frozen=True)
+class PairedDifference:
+    """``a - b`` over episodes both agents met: the mean, its standard error and 95% t interval
+    (None with a single pair), how many episodes ``a`` scored higher on, and out of how many."""
+
+    mean: float
+    standard_error: float | None
+    ci95: tuple[float, float] | None
+    better: int
+    pairs: int
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready fields."""
+        return {"mean": self.mean, "standard_error": self.standard_error,
+                "ci95": None if self.ci95 is None else list(self.ci95),
+                "better": self.better, "pairs": self.pairs}
+
+
+def paired_difference(a: np.ndarray, b: np.ndarray) -> PairedDifference:
+    """Paired comparison of returns ``a`` [N] and ``b`` [N], element i of each being the same
+    episode (same task, seed and episode seed)."""
+    a, b = np.asarray(a, np.float64).ravel(), np.asarray(b, np.float64).ravel()
+    if a.shape != b.shape:
+        raise ConfigError(f"paired returns need one value per episode on each side, got "
+                          f"{a.size} and {b.size}")
+    if a.size == 0:
+        raise ConfigError("paired returns need at least one episode, got none")
+    diff = a - b
+    if diff.size == 1 or np.ptp(diff) == 0:
+        # One pair has no spread to estimate; identical differences have no uncertainty left
+        # (and scipy's t interval would divide by zero).
+        spread = None if diff.size == 1 else 0.0
+        ci = None if spread is None else (float(diff[0]), float(diff[0]))
+    else:
+        spread = float(stats.sem(diff))
+        interval = stats.ttest_rel(a, b).confidence_interval(0.95)
+        ci = (float(interval.low), float(interval.high))
+    return PairedDifference(float(diff.mean()), spread, ci, int((diff > 0).sum()), diff.size)
+
+
+def format_paired(paired: Mapping[str, Any]) -> str:
+    """A :meth:`PairedDifference.as_dict` as the README writes it: ``+12.3 ± 4.5 (7/10)``."""
+    spread = paired["standard_error"]
+    spread_text = "" if spread is None else f" ± {spread:.1f}"
+    return f"{paired['mean']:+.1f}{spread_text} ({paired['better']}/{paired['pairs']})"
