@@ -86,8 +86,9 @@ def test_agents_are_paired_with_twist_episode_by_episode_within_each_task() -> N
         agent=lambda d: d.agent.replace({"dreamer-dr": "oracle"})))
     summary["paired"] = {"cartpole-balance": {"oracle": dreamer}}
     table = markdown_table(summary)
-    assert "| cartpole-balance | Oracle (teacher on states) | +0.0 ± 15.3 | [" in table
-    assert "| 1/3 |" in table
+    # t(0.975, 2 dof) = 4.302653, times the standard error: 65.7
+    assert ("| cartpole-balance | Oracle (teacher on states) | +0.0 ± 15.3 (1/3) "
+            "| [-65.7, +65.7] |") in table
 
 
 def test_aggregate_refuses_a_task_without_oracle() -> None:

@@ -50,7 +50,7 @@ from twist_models.evaluation import (
     paired_episodes,
     run_evaluation,
 )
-from twist_models.statistics import stratified_bootstrap
+from twist_models.statistics import format_paired, stratified_bootstrap
 from twist_models.teacher import FINAL_TEACHER
 
 log = logging.getLogger(__name__)
@@ -357,16 +357,14 @@ def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) 
     if summary.get("paired"):
         lines += ["", f"Paired by episode against {AGENTS[PAIRED_AGAINST]} (same seed and "
                   "evaluation episode): mean ± standard error of the return differences, "
-                  "[95% t interval], episodes better / pairs.", "",
-                  "| Task | Agent | difference | 95% CI | better |", "|---|---|---|---|---|"]
+                  "(episodes better / pairs), [95% t interval].", "",
+                  "| Task | Agent | difference (better/pairs) | 95% CI |", "|---|---|---|---|"]
         for task, by_agent in summary["paired"].items():
             for agent in [a for a in AGENTS if a in by_agent]:
                 p = by_agent[agent]
-                spread = "" if p["standard_error"] is None else f" ± {p['standard_error']:.1f}"
                 ci = ("–" if p["ci95"] is None else
                       f"[{p['ci95'][0]:+.1f}, {p['ci95'][1]:+.1f}]")
-                lines.append(f"| {task} | {AGENTS[agent]} | {p['mean']:+.1f}{spread} | {ci} "
-                             f"| {p['better']}/{p['pairs']} |")
+                lines.append(f"| {task} | {AGENTS[agent]} | {format_paired(p)} | {ci} |")
     return "\n".join(lines) + "\n"
 
 
