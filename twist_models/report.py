@@ -13,7 +13,8 @@ its folder exists without one, so an interrupted report continues where it stopp
 Statistics (Agarwal et al., 2021, as the paper): a run's score is its mean return over the
 evaluation episodes; the table gives mean ± std over seeds; normalised scores divide a run's
 score by the oracle's mean score on the same task; the aggregate is the IQM of the normalised
-run scores over all tasks and seeds with a 95% bootstrap interval stratified by task.
+run scores over all tasks and seeds with a 95% bootstrap interval stratified by task; and, per
+task, every agent's return minus TWIST's on the same evaluation episodes, pooled over seeds.
 """
 
 from __future__ import annotations
@@ -270,12 +271,6 @@ def run_scores(episodes: pd.DataFrame) -> pd.DataFrame:
     return runs[list(RESULT_COLUMNS)]
 
 
-def collect_results(out: str | os.PathLike[str],
-                    config: ReportConfig | None = None) -> pd.DataFrame:
-    """:func:`run_scores` of :func:`collect_episodes`."""
-    return run_scores(collect_episodes(out, config))
-
-
 def paired_with(episodes: pd.DataFrame, against: str = PAIRED_AGAINST
                 ) -> dict[str, dict[str, dict[str, Any]]]:
     """Per task and agent: the agent's returns minus ``against``'s over the episodes both met
@@ -392,7 +387,8 @@ def plot_iqm(summary: dict[str, Any], out: str | os.PathLike[str]) -> Path:
 def build_report(out: str | os.PathLike[str], config: ReportConfig | None = None
                  ) -> dict[str, Any]:
     """Aggregate the evaluations under ``out`` into ``results.csv``, ``report.md`` and
-    ``iqm.png``; returns the summary of :func:`aggregate`."""
+    ``iqm.png``; returns the summary of :func:`aggregate` with the paired differences from
+    TWIST of :func:`paired_with` under ``paired``."""
     out = Path(out)
     episodes = collect_episodes(out, config)
     results = run_scores(episodes)
