@@ -23,12 +23,14 @@ from twist_models.evaluation import (
     load_agent,
     run_evaluation,
 )
+from twist_models.rssm import POSTERIOR_READS
 from twist_models.statistics import format_paired
 
 app = new_app()
 
 
-def parse_agents(specs: list[str], device: str) -> dict[str, EvalAgent | str]:
+def parse_agents(specs: list[str], device: str, posterior: str = "sample"
+                 ) -> dict[str, EvalAgent | str]:
     """``NAME=PATH`` or ``PATH`` (named after its kind and file) -> {name: loaded agent}; a
     reference agent stays a name (it is sized for the task once that is known)."""
     agents: dict[str, EvalAgent | str] = {}
@@ -38,7 +40,7 @@ def parse_agents(specs: list[str], device: str) -> dict[str, EvalAgent | str]:
             agent: EvalAgent | str = path
             name = name or path
         else:
-            agent = load_agent(path, device)
+            agent = load_agent(path, device, posterior=posterior)
         if not name:
             kind = "oracle" if isinstance(agent, StateAgent) else "student"
             name = f"{kind}-{Path(path).stem}"
@@ -70,9 +72,15 @@ def main(
         help="Render at this multiple and downsample [each agent's training data's].")] = None,
     paired_with: Annotated[str | None, typer.Option(
         help="Agent NAME to compare every other agent with, episode by episode.")] = None,
+    posterior: Annotated[str, typer.Option(
+        help="How students take z from their posterior: sample (the paper), mode or mean "
+             "(class probabilities).")] = "sample",
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
-    agents = parse_agents(agent, device)
+    if posterior not in POSTERIOR_READS:
+        raise ConfigError(f"--posterior must be one of {', '.join(POSTERIOR_READS)}, "
+                          f"got {posterior!r}")
+    agents = parse_agents(agent, device, posterior)
     if task is None:
         task = agents_setting(agents, "task")
         if task is None:
@@ -81,6 +89,7 @@ def main(
         action_repeat = agents_setting(agents, "action_repeat") or DEFAULT_ACTION_REPEAT
     config = EvalConfig(task=task, dr=dr, episodes=episodes, max_steps=max_steps,
                         action_repeat=action_repeat, supersample=supersample,
+                        posterior=posterior,
                         backgrounds=None if backgrounds is None else str(backgrounds))
     seed_list = parse_list(seeds, int, "--seeds")
     summary = run_evaluation(agents, config, seed_list, out_dir, video, device,

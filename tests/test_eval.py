@@ -199,10 +199,40 @@ def test_bad_inputs_are_refused(gl, agents, tmp_path) -> None:
              "no-images"),
             (["--agent", str(tmp_path / "missing.pt")], "does not exist"),
             (["--agent", str(agents["agent"]), "--paired-with", "nobody"],
-             "'nobody', is not among the agents")):
+             "'nobody', is not among the agents"),
+            (["--agent", str(agents["agent"]), "--posterior", "median"], "got 'median'")):
         result = cli(*args)
         assert result.returncode == 2, (args, result.stderr)
         assert message in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+def test_a_student_reading_its_posterior_mode_or_mean_acts_without_chance(gl, agents) -> None:
+    # The tiny random student's posterior is nearly uniform, so sampled latents (and with them
+    # the actions) differ between two torch streams; the mode and the mean leave nothing to
+    # chance.
+    bundle = Agent.load(agents["agent"])
+    images = np.random.default_rng(0).integers(0, 256, (4, 64, 64, 3), dtype=np.uint8)
+
+    def actions(posterior: str, seed: int) -> np.ndarray:
+        torch.manual_seed(seed)
+        state, taken = None, []
+        for image in images:
+            action, state = bundle.act(image, state, posterior=posterior)
+            taken.append(action)
+        return np.stack(taken)
+
+    assert not np.array_equal(actions("sample", 0), actions("sample", 1))
+    for posterior in ("mode", "mean"):
+        np.testing.assert_array_equal(actions(posterior, 0), actions(posterior, 1))
+    assert not np.allclose(actions("mode", 0), actions("mean", 0))
+    with pytest.raises(ConfigError, match="'median'"):
+        bundle.act(images[0], posterior="median")
+    with pytest.raises(ConfigError, match="'median'"):
+        EvalConfig(posterior="median")
+    reads_mean = load_agent(agents["agent"], posterior="mean")
+    with pytest.raises(EvalError, match="reads its posterior as 'mean' but the evaluation"):
+        evaluate(reads_mean, EvalConfig(episodes=1, max_steps=2))
+    evaluate(reads_mean, EvalConfig(episodes=1, max_steps=2, posterior="mean"))
 
 
 def test_agents_act_at_the_action_repeat_they_were_trained_at(gl, agents, tmp_path) -> None:

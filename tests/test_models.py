@@ -99,6 +99,26 @@ def test_acting_step_is_the_filters_posterior_on_one_thread() -> None:
     assert torch.get_num_threads() == before
 
 
+def test_the_posterior_is_read_as_a_sample_its_mode_or_its_mean() -> None:
+    wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
+    rssm = wm.rssm
+    prev, action = rssm.initial(3), torch.rand(3, 2)
+    embed = torch.randn(3, wm.encoder.out_dim)
+    with torch.no_grad():
+        reads = {read: rssm.post_step(prev, action, embed, read=read)
+                 for read in ("sample", "mode", "mean")}
+    logits = reads["sample"]["logits"]
+    for read in reads.values():  # the read changes z, never h or the posterior itself
+        torch.testing.assert_close(read["deter"], reads["sample"]["deter"])
+        torch.testing.assert_close(read["logits"], logits)
+    probs = torch.exp(logits - logits.logsumexp(-1, keepdim=True))
+    torch.testing.assert_close(reads["mean"]["stoch"], probs)
+    assert torch.equal(reads["mode"]["stoch"].argmax(-1), logits.argmax(-1))
+    assert torch.equal(reads["mode"]["stoch"].sum(-1), torch.ones(3, rssm.config.stoch))
+    with pytest.raises(ValueError, match="'median'"):
+        rssm.post_step(prev, action, embed, read="median")
+
+
 def test_straight_through_gradients_flow() -> None:
     logits = torch.randn(5, 4, 3, requires_grad=True)
     sample = sample_one_hot(logits)

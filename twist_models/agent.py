@@ -16,10 +16,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from twist_data.errors import ConfigError
 from twist_models.actor_critic import Actor
 from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
 from twist_models.config import AgentConfig, from_json
-from twist_models.rssm import State
+from twist_models.rssm import POSTERIOR_READS, State
 from twist_models.student import Student, step_frames
 from twist_models.teacher import Teacher
 
@@ -65,10 +66,15 @@ class Agent(nn.Module):
     # inference_mode: ~15% less per-call overhead than no_grad on this batch-1 path.
     @torch.inference_mode()
     def act(self, image: np.ndarray | torch.Tensor, state: AgentState | None = None,
-            explore: bool = False) -> tuple[np.ndarray, AgentState]:
+            explore: bool = False, posterior: str = "sample") -> tuple[np.ndarray, AgentState]:
         """One step: ``image`` uint8 [H, W, 3] (or a batch [N, H, W, 3]) and the state the
         previous call returned (None at the start of an episode) -> (action [A] or [N, A] in
-        [-1, 1], next state). ``explore`` samples the actor instead of taking its mode."""
+        [-1, 1], next state). ``explore`` samples the actor instead of taking its mode;
+        ``posterior`` (one of :data:`~twist_models.rssm.POSTERIOR_READS`) is how the latent
+        takes z from the student's posterior."""
+        if posterior not in POSTERIOR_READS:
+            raise ConfigError(f"unknown posterior read {posterior!r}; valid: "
+                              f"{', '.join(POSTERIOR_READS)}")
         image = torch.as_tensor(np.asarray(image), device=self.device)
         single = image.dim() == 3
         if single:
@@ -81,7 +87,7 @@ class Agent(nn.Module):
                                torch.zeros(n, self.config.student.action_dim, device=self.device))
         embed, history = step_frames(self.student.encoder(image), state.frames,
                                      self.config.student.frames)
-        latent = rssm.post_step(state.latent, state.action, embed, first)
+        latent = rssm.post_step(state.latent, state.action, embed, first, read=posterior)
         dist = self.actor(rssm.feature(latent))
         action = (dist.rsample() if explore else dist.mode).clamp(-1.0, 1.0)
         out = action.cpu().numpy()

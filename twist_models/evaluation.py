@@ -37,6 +37,7 @@ from twist_models.collect import teacher_policy
 from twist_models.config import require_positive
 from twist_models.curves import plot_returns
 from twist_models.networks import single_threaded
+from twist_models.rssm import POSTERIOR_READS
 from twist_models.statistics import PairedDifference, paired_difference, stratified_bootstrap
 from twist_models.teacher import Teacher, teacher_from_checkpoint
 
@@ -67,9 +68,16 @@ class EvalConfig:
     others)."""
     max_steps: int | None = None
     """Agent steps per episode; None: the task's limit."""
+    posterior: str = "sample"
+    """How image agents take z from their posterior when acting (one of
+    :data:`~twist_models.rssm.POSTERIOR_READS`): ``sample`` as DreamerV2 and the paper,
+    ``mode``, or ``mean`` (the class probabilities; see the README, "Learning results")."""
 
     def __post_init__(self) -> None:
         task_spec(self.task)
+        if self.posterior not in POSTERIOR_READS:
+            raise ConfigError(f"unknown posterior read {self.posterior!r}; valid: "
+                              f"{', '.join(POSTERIOR_READS)}")
         if self.dr not in DR_PRESETS:
             raise ConfigError(f"unknown DR preset {self.dr!r}; valid: {', '.join(DR_PRESETS)}")
         if self.episodes < 1:
@@ -121,8 +129,9 @@ class ImageAgent:
 
     uses_images = True
 
-    def __init__(self, agent: Agent) -> None:
+    def __init__(self, agent: Agent, posterior: str = "sample") -> None:
         self.agent = agent
+        self.posterior = posterior
         self.task = self.agent.info.get("task")
         self.image_size = self.agent.info.get("image_size")
         self.supersample = self.agent.info.get("supersample")
@@ -133,7 +142,7 @@ class ImageAgent:
         self._state = None
 
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
-        action, self._state = self.agent.act(image, self._state)
+        action, self._state = self.agent.act(image, self._state, posterior=self.posterior)
         return action
 
 
@@ -180,10 +189,11 @@ def is_reference(spec: str | os.PathLike[str]) -> bool:
     return str(spec) in REFERENCE_AGENTS and not Path(spec).exists()
 
 
-def load_agent(path: str | os.PathLike[str], device: str = "cpu", task: str | None = None
-               ) -> StateAgent | ImageAgent | ScriptedAgent:
-    """A teacher checkpoint becomes the state oracle, an agent bundle the image agent, and a
-    name from :data:`REFERENCE_AGENTS` that reference policy (it needs ``task``)."""
+def load_agent(path: str | os.PathLike[str], device: str = "cpu", task: str | None = None,
+               posterior: str = "sample") -> StateAgent | ImageAgent | ScriptedAgent:
+    """A teacher checkpoint becomes the state oracle, an agent bundle the image agent (reading
+    its posterior as ``posterior`` says), and a name from :data:`REFERENCE_AGENTS` that
+    reference policy (it needs ``task``)."""
     if is_reference(path):
         if task is None:
             raise EvalError(f"the reference agent {str(path)!r} needs a task; pass --task or "
@@ -195,7 +205,7 @@ def load_agent(path: str | os.PathLike[str], device: str = "cpu", task: str | No
         return StateAgent(teacher_from_checkpoint(checkpoint, source=str(path)),
                           collect.get("task"), device, collect.get("action_repeat"))
     if checkpoint.kind == "agent":
-        return ImageAgent(Agent.from_checkpoint(checkpoint, device))
+        return ImageAgent(Agent.from_checkpoint(checkpoint, device), posterior)
     kind = checkpoint.kind
     raise EvalError(f"{str(path)!r} holds a {kind}; evaluate a teacher checkpoint or an "
                     "agent bundle (agent.pt from twist-distil)")
@@ -212,6 +222,10 @@ def check_compatible(agent: EvalAgent, config: EvalConfig, name: str = "the agen
     if agent.uses_images and size is not None and size != config.image_size:
         raise EvalError(f"{name} reads {size}px images but the evaluation renders "
                         f"{config.image_size}px")
+    posterior = getattr(agent, "posterior", None)
+    if agent.uses_images and posterior is not None and posterior != config.posterior:
+        raise EvalError(f"{name} reads its posterior as {posterior!r} but the evaluation "
+                        f"says {config.posterior!r}")
     repeat = getattr(agent, "action_repeat", None)
     if repeat is not None and repeat != config.action_repeat:
         raise EvalError(f"{name} was trained at action repeat {repeat} but the evaluation "
@@ -311,7 +325,8 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
         raise EvalError(f"the agent to pair against, {against!r}, is not among the agents "
                         f"({', '.join(agents)})")
     out = Path(out)
-    loaded = {name: load_agent(a, device, config.task) if isinstance(a, str | os.PathLike)
+    loaded = {name: load_agent(a, device, config.task, config.posterior)
+              if isinstance(a, str | os.PathLike)
               else a for name, a in agents.items()}
     for name, agent in loaded.items():
         check_compatible(agent, config, f"agent {name!r}")

@@ -22,6 +22,9 @@ from twist_models.networks import LayerNormGRUCell
 State = dict[str, torch.Tensor]
 #: Maps a detached model feature [N, F] to an action [N, A].
 Policy = Callable[[torch.Tensor], torch.Tensor]
+#: How an acting agent reads z_t from its posterior: a one-hot ``sample`` (DreamerV2 and the
+#: paper), the one-hot ``mode``, or the ``mean`` (the class probabilities).
+POSTERIOR_READS = ("sample", "mode", "mean")
 
 
 def sample_one_hot(logits: torch.Tensor, uniform: torch.Tensor | None = None) -> torch.Tensor:
@@ -106,8 +109,9 @@ class RSSM(nn.Module):
 
     def post_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
                   is_first: torch.Tensor | None = None,
-                  uniform: torch.Tensor | None = None) -> State:
-        """The posterior state alone: what acting needs (the prior head is not run)."""
+                  uniform: torch.Tensor | None = None, read: str = "sample") -> State:
+        """The posterior state alone: what acting needs (the prior head is not run). ``read``
+        (one of :data:`POSTERIOR_READS`) is how ``stoch`` is taken from the posterior."""
         if is_first is not None:
             keep = (~is_first.bool()).to(action.dtype)
             prev = {k: v * keep.reshape(*keep.shape, *([1] * (v.dim() - keep.dim())))
@@ -115,7 +119,15 @@ class RSSM(nn.Module):
             action = action * keep.unsqueeze(-1)
         deter = self._deter(prev, action)
         logits = self._logits(self.obs_out(torch.cat([deter, embed], -1)))
-        return {"deter": deter, "logits": logits, "stoch": sample_one_hot(logits, uniform)}
+        if read == "sample":
+            stoch = sample_one_hot(logits, uniform)
+        elif read == "mode":
+            stoch = _mode(logits)
+        elif read == "mean":
+            stoch = F.softmax(logits, -1)
+        else:
+            raise ValueError(f"unknown posterior read {read!r}; valid: {', '.join(POSTERIOR_READS)}")
+        return {"deter": deter, "logits": logits, "stoch": stoch}
 
     # -- sequences --------------------------------------------------------------------------
     def observe(self, embed: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
