@@ -23,7 +23,7 @@ from twist_models.evaluation import (
     load_agent,
     run_evaluation,
 )
-from twist_models.rssm import POSTERIOR_READS
+from twist_models.rssm import require_posterior_read
 from twist_models.statistics import format_paired
 
 app = new_app()
@@ -77,9 +77,7 @@ def main(
              "(class probabilities).")] = "sample",
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
-    if posterior not in POSTERIOR_READS:
-        raise ConfigError(f"--posterior must be one of {', '.join(POSTERIOR_READS)}, "
-                          f"got {posterior!r}")
+    require_posterior_read(posterior, "--posterior")
     agents = parse_agents(agent, device, posterior)
     if task is None:
         task = agents_setting(agents, "task")

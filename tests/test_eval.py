@@ -200,7 +200,8 @@ def test_bad_inputs_are_refused(gl, agents, tmp_path) -> None:
             (["--agent", str(tmp_path / "missing.pt")], "does not exist"),
             (["--agent", str(agents["agent"]), "--paired-with", "nobody"],
              "'nobody', is not among the agents"),
-            (["--agent", str(agents["agent"]), "--posterior", "median"], "got 'median'")):
+            (["--agent", str(agents["agent"]), "--posterior", "median"],
+             "unknown --posterior 'median'")):
         result = cli(*args)
         assert result.returncode == 2, (args, result.stderr)
         assert message in result.stderr and "Traceback" not in result.stderr, result.stderr

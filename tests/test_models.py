@@ -115,7 +115,7 @@ def test_the_posterior_is_read_as_a_sample_its_mode_or_its_mean() -> None:
     torch.testing.assert_close(reads["mean"]["stoch"], probs)
     assert torch.equal(reads["mode"]["stoch"].argmax(-1), logits.argmax(-1))
     assert torch.equal(reads["mode"]["stoch"].sum(-1), torch.ones(3, rssm.config.stoch))
-    with pytest.raises(ValueError, match="'median'"):
+    with pytest.raises(ConfigError, match="unknown posterior read 'median'"):
         rssm.post_step(prev, action, embed, read="median")
 
 

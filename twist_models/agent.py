@@ -16,11 +16,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from twist_data.errors import ConfigError
 from twist_models.actor_critic import Actor
 from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
 from twist_models.config import AgentConfig, from_json
-from twist_models.rssm import POSTERIOR_READS, State
+from twist_models.rssm import State, require_posterior_read
 from twist_models.student import Student, step_frames
 from twist_models.teacher import Teacher
 
@@ -72,9 +71,7 @@ class Agent(nn.Module):
         [-1, 1], next state). ``explore`` samples the actor instead of taking its mode;
         ``posterior`` (one of :data:`~twist_models.rssm.POSTERIOR_READS`) is how the latent
         takes z from the student's posterior."""
-        if posterior not in POSTERIOR_READS:
-            raise ConfigError(f"unknown posterior read {posterior!r}; valid: "
-                              f"{', '.join(POSTERIOR_READS)}")
+        require_posterior_read(posterior)
         image = torch.as_tensor(np.asarray(image), device=self.device)
         single = image.dim() == 3
         if single:

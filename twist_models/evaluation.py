@@ -37,7 +37,7 @@ from twist_models.collect import teacher_policy
 from twist_models.config import require_positive
 from twist_models.curves import plot_returns
 from twist_models.networks import single_threaded
-from twist_models.rssm import POSTERIOR_READS
+from twist_models.rssm import require_posterior_read
 from twist_models.statistics import PairedDifference, paired_difference, stratified_bootstrap
 from twist_models.teacher import Teacher, teacher_from_checkpoint
 
@@ -75,9 +75,7 @@ class EvalConfig:
 
     def __post_init__(self) -> None:
         task_spec(self.task)
-        if self.posterior not in POSTERIOR_READS:
-            raise ConfigError(f"unknown posterior read {self.posterior!r}; valid: "
-                              f"{', '.join(POSTERIOR_READS)}")
+        require_posterior_read(self.posterior)
         if self.dr not in DR_PRESETS:
             raise ConfigError(f"unknown DR preset {self.dr!r}; valid: {', '.join(DR_PRESETS)}")
         if self.episodes < 1:

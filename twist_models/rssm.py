@@ -16,6 +16,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from twist_data.errors import ConfigError
 from twist_models.config import RSSMConfig
 from twist_models.networks import LayerNormGRUCell
 
@@ -25,6 +26,12 @@ Policy = Callable[[torch.Tensor], torch.Tensor]
 #: How an acting agent reads z_t from its posterior: a one-hot ``sample`` (DreamerV2 and the
 #: paper), the one-hot ``mode``, or the ``mean`` (the class probabilities).
 POSTERIOR_READS = ("sample", "mode", "mean")
+
+
+def require_posterior_read(read: str, what: str = "posterior read") -> None:
+    """Raise ConfigError unless ``read`` is one of :data:`POSTERIOR_READS`."""
+    if read not in POSTERIOR_READS:
+        raise ConfigError(f"unknown {what} {read!r}; valid: {', '.join(POSTERIOR_READS)}")
 
 
 def sample_one_hot(logits: torch.Tensor, uniform: torch.Tensor | None = None) -> torch.Tensor:
@@ -126,7 +133,7 @@ class RSSM(nn.Module):
         elif read == "mean":
             stoch = F.softmax(logits, -1)
         else:
-            raise ValueError(f"unknown posterior read {read!r}; valid: {', '.join(POSTERIOR_READS)}")
+            require_posterior_read(read)
         return {"deter": deter, "logits": logits, "stoch": stoch}
 
     # -- sequences --------------------------------------------------------------------------
