@@ -464,3 +464,35 @@ def test_the_agent_acting_step_by_step_filters_as_the_student_does_on_windows(
     torch.testing.assert_close(torch.cat(logits), post["logits"][0])
     assert student.rssm.obs_out[0].in_features == (
         student.config.rssm.deter + frames * student.encoder.out_dim)
+
+
+def test_mean_filters_are_deterministic_and_act_as_they_were_trained() -> None:
+    objective, batch = _objective(imagined=False, filter_read="mean")
+    sampled, _ = _objective(imagined=False)
+    runs = {}
+    for name, candidate in (("mean", objective), ("sample", sampled)):
+        for seed in (1, 2):
+            torch.manual_seed(seed)
+            with torch.no_grad():
+                runs[name, seed] = candidate.filter(batch)
+    (s1, t1, terms1), (s2, t2, terms2) = runs["mean", 1], runs["mean", 2]
+    for a, b in ((s1, s2), (t1, t2)):  # no draw reaches either filter
+        assert torch.equal(a["deter"], b["deter"]) and torch.equal(a["stoch"], b["stoch"])
+    assert all(torch.equal(terms1[k], terms2[k]) for k in terms1)
+    for post in (s1, t1):  # z is the posterior's class probabilities
+        torch.testing.assert_close(post["stoch"], torch.softmax(post["logits"], -1))
+    assert not torch.equal(runs["sample", 1][0]["deter"], runs["sample", 2][0]["deter"])
+
+    # The agent acting with --posterior mean is the student's filter of training.
+    agent = Agent.from_models(objective.student, objective.teacher).eval()
+    images, state, logits, actions = batch["image"][:1], None, [], []
+    for t in range(images.shape[1]):
+        action, state = agent.act(images[0, t].numpy(), state, posterior="mean")
+        logits.append(state.latent["logits"])
+        actions.append(torch.as_tensor(action))
+    previous = torch.stack([torch.zeros(1), *actions[:-1]])[None].float()
+    with torch.no_grad():
+        post, _ = objective.student.observe(images, previous, batch["is_first"][:1], read="mean")
+    torch.testing.assert_close(torch.cat(logits), post["logits"][0])
+    with pytest.raises(ConfigError, match="filter_read must be one of sample, mean, got 'mode'"):
+        distil_preset("tiny", filter_read="mode")

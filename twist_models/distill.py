@@ -118,6 +118,12 @@ class DistilConfig:
     """Posterior states that start Eq. 4's rollouts; 0 = every step of every window."""
     shared_draws: bool = True
     """Teacher and student sample their latents from the same uniform draws."""
+    filter_read: str = "sample"
+    """How both filters take z from their posteriors along Eq. 3's windows: ``sample`` (the
+    paper) or ``mean``, the class probabilities, which makes both filters deterministic, so
+    the student's h carries its own errors along the window instead of following the
+    teacher's draws; a student so trained acts with ``twist-eval --posterior mean`` (not in
+    the paper; see the README, "Learning results")."""
     copy_dynamics: bool = True
     """Start the student's RSSM from the teacher's (False: from scratch, as the paper)."""
     freeze_dynamics: bool = False
@@ -178,6 +184,8 @@ class DistilConfig:
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
+        # The mode has no gradient to train the student's posterior through.
+        require_choice(self, "filter_read", ("sample", "mean"))
         if self.view is not None and self.view < 0:
             raise ConfigError(f"view must be >= 0, got {self.view}")
         if self.freeze_dynamics and not self.copy_dynamics:
@@ -263,9 +271,9 @@ class Distillation(nn.Module):
         with torch.no_grad():
             wm = self.teacher.world_model
             t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
-                                              uniform=post_draws)
+                                              uniform=post_draws, read=self.config.filter_read)
         s_post, s_prior = self.student.observe(batch["image"], action, is_first,
-                                               uniform=post_draws)
+                                               uniform=post_draws, read=self.config.filter_read)
         terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
         return s_post, t_post, terms
 

@@ -138,18 +138,20 @@ class RSSM(nn.Module):
 
     # -- sequences --------------------------------------------------------------------------
     def observe(self, embed: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
-                state: State | None = None,
-                uniform: torch.Tensor | None = None) -> tuple[State, State]:
+                state: State | None = None, uniform: torch.Tensor | None = None,
+                read: str = "sample") -> tuple[State, State]:
         """Filter a sequence: embed [B, T, E], action [B, T, A], is_first [B, T] ->
         (posterior, prior), each {k: [B, T, ...]}. ``state`` continues a previous call;
-        ``uniform`` [B, T, S, 1] are the posterior's sampling draws (fresh when None). The
-        prior's ``stoch`` is its mode: nothing downstream of the prior reads a sample of it."""
+        ``uniform`` [B, T, S, 1] are the posterior's sampling draws (fresh when None);
+        ``read`` is how z is taken from the posterior (:meth:`post_step`). The prior's
+        ``stoch`` is its mode: nothing downstream of the prior reads a sample of it."""
         b, t = embed.shape[:2]
         state = state if state is not None else self.initial(b, embed.device)
         posts = []
         for i in range(t):
             draws = None if uniform is None else uniform[:, i]
-            state = self.post_step(state, action[:, i], embed[:, i], is_first[:, i], draws)
+            state = self.post_step(state, action[:, i], embed[:, i], is_first[:, i], draws,
+                                   read)
             posts.append(state)
         post = stack_states(posts, 1)
         # Nothing in the recurrence reads the prior, so its head runs once on all [B, T]

@@ -27,11 +27,13 @@ class Student(nn.Module):
         self.rssm = RSSM(config.rssm, config.action_dim, self.encoder.out_dim * config.frames)
 
     def observe(self, image: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
-                uniform: torch.Tensor | None = None) -> tuple[State, State]:
+                uniform: torch.Tensor | None = None, read: str = "sample"
+                ) -> tuple[State, State]:
         """Filter windows of images: image uint8 [B, T, H, W, 3], action [B, T, A],
-        is_first [B, T] -> (posterior, prior) states {k: [B, T, ...]}."""
+        is_first [B, T] -> (posterior, prior) states {k: [B, T, ...]}; ``read`` as in
+        :meth:`~twist_models.rssm.RSSM.post_step`."""
         embed = stack_frames(self.encoder(image), is_first, self.config.frames)
-        return self.rssm.observe(embed, action, is_first, uniform=uniform)
+        return self.rssm.observe(embed, action, is_first, uniform=uniform, read=read)
 
 
 def stack_frames(embed: torch.Tensor, is_first: torch.Tensor, frames: int) -> torch.Tensor:
