@@ -12,8 +12,12 @@ floor is one it must reach.
 On cartpole the state is (cart x, cos angle, sin angle, cart velocity, angular velocity);
 near upright, noise on the sine (component 2) is noise on the angle in radians.
 
+``--read mean`` (or ``mode``) adds the noise-free teacher taking z from its posterior's class
+probabilities (or most likely classes) instead of a sample.
+
 Prints one JSON line: the mean return per setting. ``python
-benchmarks/oracle_noise_tolerance.py TEACHER --noise 2:0.035 --noise 4:0.2 [--episodes 5]``
+benchmarks/oracle_noise_tolerance.py TEACHER --noise 2:0.035 --noise 4:0.2 [--read mean]
+[--episodes 5]``
 """
 
 from __future__ import annotations
@@ -60,6 +64,10 @@ def main() -> None:
                         metavar="I:SIGMA", help="noise std SIGMA on state component I")
     parser.add_argument("--task", help="for teacher checkpoints that do not record it")
     parser.add_argument("--action-repeat", type=int, help="likewise")
+    parser.add_argument("--read", choices=("mode", "mean"), action="append", default=[],
+                        help="also the noise-free teacher taking z from its posterior's mode "
+                             "or mean instead of a sample (what a student acting with "
+                             "twist-eval --posterior asks of the teacher's actor)")
     parser.add_argument("--episodes", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
@@ -76,6 +84,9 @@ def main() -> None:
         return round(float(np.mean([r.episode_return for r in results])), 1)
 
     returns = {"none": mean_return(teacher)}
+    for read in args.read:
+        returns[f"read:{read}"] = mean_return(StateAgent(
+            teacher.teacher, teacher.task, action_repeat=teacher.action_repeat, read=read))
     for index, sigma in args.noise:
         returns[f"{index}:{sigma:g}"] = mean_return(
             NoisyStateAgent(teacher, index, sigma, args.seed))

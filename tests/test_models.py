@@ -117,6 +117,11 @@ def test_the_posterior_is_read_as_a_sample_its_mode_or_its_mean() -> None:
     assert torch.equal(reads["mode"]["stoch"].sum(-1), torch.ones(3, rssm.config.stoch))
     with pytest.raises(ConfigError, match="unknown posterior read 'median'"):
         rssm.post_step(prev, action, embed, read="median")
+    # The teacher acting on states passes its read through to its filter.
+    teacher = Teacher(teacher_preset("tiny", 5, 2))
+    _, latent = teacher.policy(torch.randn(3, 5), None, torch.zeros(3, 2), None, explore=False,
+                               read="mean")
+    torch.testing.assert_close(latent["stoch"], torch.softmax(latent["logits"], -1))
 
 
 def test_straight_through_gradients_flow() -> None:

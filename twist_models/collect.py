@@ -368,12 +368,13 @@ class Pushes:
 
 
 def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str = "cpu",
-                   explore: bool = True, noise: float = 0.0, pushes: Pushes | None = None
-                   ) -> Policy:
+                   explore: bool = True, noise: float = 0.0, pushes: Pushes | None = None,
+                   read: str = "sample") -> Policy:
     """The teacher as a rollout policy on privileged state: it filters its latent across the
-    steps of an episode (reset at ``is_first``) and returns actions as numpy arrays, with
-    Gaussian noise of std ``noise`` added (clipped to [-1, 1]), or, while one of ``pushes``
-    is under way, the push's action. The filter always sees the action taken."""
+    steps of an episode (reset at ``is_first``; z taken from the posterior as ``read`` says)
+    and returns actions as numpy arrays, with Gaussian noise of std ``noise`` added (clipped
+    to [-1, 1]), or, while one of ``pushes`` is under way, the push's action. The filter
+    always sees the action taken."""
     latent = None
     previous = torch.zeros(1, action_dim, device=device)
 
@@ -383,7 +384,8 @@ def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str
         # Only a first step needs is_first's masking (~100 us of the ~1 ms acting step); a
         # check inside the RSSM would cost training a device sync per step instead.
         first = torch.tensor([True], device=device) if step.is_first else None
-        action, latent = teacher.policy(state, latent, previous, first, explore=explore)
+        action, latent = teacher.policy(state, latent, previous, first, explore=explore,
+                                        read=read)
         if noise:
             action = (action + noise * torch.randn_like(action)).clamp(-1.0, 1.0)
         push = pushes() if pushes is not None else None

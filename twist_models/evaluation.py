@@ -107,7 +107,11 @@ class StateAgent:
     uses_images = False
 
     def __init__(self, teacher: Teacher, task: str | None, device: str = "cpu",
-                 action_repeat: int | None = None) -> None:
+                 action_repeat: int | None = None, read: str = "sample") -> None:
+        """``read``: how the teacher takes z from its posterior; ``sample`` as it was trained
+        (``twist-eval``'s oracle always samples: it is the normaliser)."""
+        require_posterior_read(read)
+        self.read = read
         self.teacher = teacher.to_device(device).eval()
         self.action_dim = teacher.config.world_model.action_dim
         self.device = device
@@ -116,7 +120,8 @@ class StateAgent:
         self.reset()
 
     def reset(self) -> None:
-        self._policy = teacher_policy(self.teacher, self.action_dim, self.device, explore=False)
+        self._policy = teacher_policy(self.teacher, self.action_dim, self.device, explore=False,
+                                      read=self.read)
 
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
         return self._policy(step)
