@@ -86,7 +86,7 @@ def main() -> None:
     returns = {"none": mean_return(teacher)}
     for read in args.read:
         returns[f"read:{read}"] = mean_return(StateAgent(
-            teacher.teacher, teacher.task, action_repeat=teacher.action_repeat, read=read))
+            teacher.teacher, teacher.task, action_repeat=teacher.action_repeat, posterior=read))
     for index, sigma in args.noise:
         returns[f"{index}:{sigma:g}"] = mean_return(
             NoisyStateAgent(teacher, index, sigma, args.seed))

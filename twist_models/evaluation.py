@@ -107,11 +107,11 @@ class StateAgent:
     uses_images = False
 
     def __init__(self, teacher: Teacher, task: str | None, device: str = "cpu",
-                 action_repeat: int | None = None, read: str = "sample") -> None:
-        """``read``: how the teacher takes z from its posterior; ``sample`` as it was trained
-        (``twist-eval``'s oracle always samples: it is the normaliser)."""
-        require_posterior_read(read)
-        self.read = read
+                 action_repeat: int | None = None, posterior: str = "sample") -> None:
+        """``posterior``: how the teacher takes z from its posterior; ``sample`` as it was
+        trained (``twist-eval``'s oracle always samples: it is the normaliser)."""
+        require_posterior_read(posterior)
+        self.posterior = posterior
         self.teacher = teacher.to_device(device).eval()
         self.action_dim = teacher.config.world_model.action_dim
         self.device = device
@@ -121,7 +121,7 @@ class StateAgent:
 
     def reset(self) -> None:
         self._policy = teacher_policy(self.teacher, self.action_dim, self.device, explore=False,
-                                      read=self.read)
+                                      read=self.posterior)
 
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
         return self._policy(step)
