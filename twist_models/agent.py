@@ -19,7 +19,7 @@ from torch import nn
 from twist_models.actor_critic import Actor
 from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
 from twist_models.config import AgentConfig, from_json
-from twist_models.rssm import State, require_posterior_read
+from twist_models.rssm import State
 from twist_models.student import Student, step_frames
 from twist_models.teacher import Teacher
 
@@ -70,8 +70,7 @@ class Agent(nn.Module):
         previous call returned (None at the start of an episode) -> (action [A] or [N, A] in
         [-1, 1], next state). ``explore`` samples the actor instead of taking its mode;
         ``posterior`` (one of :data:`~twist_models.rssm.POSTERIOR_READS`) is how the latent
-        takes z from the student's posterior."""
-        require_posterior_read(posterior)
+        takes z from the student's posterior (an unknown one raises ConfigError there)."""
         image = torch.as_tensor(np.asarray(image), device=self.device)
         single = image.dim() == 3
         if single:
