@@ -17,6 +17,9 @@ sampled class differs. For the student also the gain: the least-squares slope of
 on the teacher's (1: the right size; near 0: it barely acts on what the teacher reacts to),
 and the swaps: the actor on (student h, teacher z) and on (teacher h, student z), which tell
 which half of the latent its error comes from. ``return``: the episodes' return.
+``student_h_explained_steps_A_B``: the student's h-explained over steps A..B-1 only (against
+the whole episode's variance), in bins of ``--bin`` steps: whether its h drifts further the
+longer it filters, e.g. past the length of the windows it was trained on.
 
 Prints one JSON line of means over episodes. ``python benchmarks/latent_probe.py TEACHER
 AGENT [--dr heldout] [--episodes 4] [--acting student]``
@@ -48,7 +51,8 @@ def differing_classes(a: State, b: State) -> float:
 
 
 def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, agent: Agent,
-            student_acts: bool = False) -> dict[str, float]:
+            student_acts: bool = False, bin_steps: int = 50,
+            posterior: str = "sample") -> dict[str, float]:
     sampler = renderer.sampler(seed)
     step = env.reset(seed=seed, dynamics=sampler.begin_episode(seed))
     acting = again = None
@@ -66,7 +70,7 @@ def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, age
             action, acting = teacher.policy(state, acting, previous, first, explore=False)
             _, again = teacher.policy(state, again, previous, first, explore=False)
         image = renderer.render(step.physics, sampler.sample())[0]
-        student_action, student = agent.act(image, student)
+        student_action, student = agent.act(image, student, posterior=posterior)
         mine = student.latent
         with torch.no_grad():
             rows["again_action"].append(float(actor(again)[0, 0]))
@@ -100,6 +104,11 @@ def episode(env: TaskEnv, renderer: DRRenderer, seed: int, teacher: Teacher, age
                        f"{name}_z_differs": float(np.mean(rows[f"{name}_z"]))})
     for swap in ("student_h_teacher_z", "teacher_h_student_z"):
         result[f"{swap}_action_corr"] = correlation(rows["action"], rows[swap])
+    squared = ((np.array(rows["student_h"]) - h) ** 2).mean(1)
+    for start in range(0, len(squared), bin_steps):
+        stop = min(start + bin_steps, len(squared))
+        result[f"student_h_explained_steps_{start}_{stop}"] = (
+            1 - float(squared[start:stop].mean()) / variance)
     return result
 
 
@@ -111,6 +120,9 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=4)
     parser.add_argument("--seed", type=int, default=200)
     parser.add_argument("--acting", choices=("teacher", "student"), default="teacher")
+    parser.add_argument("--bin", type=int, default=50, help="steps per bin of the h profile")
+    parser.add_argument("--posterior", choices=("sample", "mode", "mean"), default="sample",
+                        help="how the student reads its posterior when acting")
     args = parser.parse_args()
     torch.manual_seed(0)
     teacher = load_teacher(args.teacher)[0].eval()
@@ -121,10 +133,12 @@ def main() -> None:
     supersample = agent.info.get("supersample") or 1
     with DRRenderer(task, dr, agent.info["image_size"], views=1,
                     supersample=supersample) as renderer:
-        runs = [episode(env, renderer, args.seed + i, teacher, agent, args.acting == "student")
+        runs = [episode(env, renderer, args.seed + i, teacher, agent, args.acting == "student",
+                        args.bin, args.posterior)
                 for i in range(args.episodes)]
     means = {k: round(float(np.mean([r[k] for r in runs])), 4) for k in runs[0]}
     print(json.dumps({"task": task, "dr": args.dr, "acting": args.acting,
+                      "posterior": args.posterior,
                       "episodes": args.episodes, **means}))
 
 
