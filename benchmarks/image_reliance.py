@@ -47,8 +47,8 @@ def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
 def agreement(objective: Distillation, teacher: Teacher, batch: Batch) -> dict[str, float]:
     s_post, t_post, terms = objective.filter(batch)
     actor = teacher.actor_critic.actor
-    t_action = actor(teacher.world_model.rssm.feature(t_post)).mode[..., 0]
-    s_action = actor(objective.student.rssm.feature(s_post)).mode[..., 0]
+    t_action = actor(teacher.world_model.rssm.feature(t_post)).mode  # [B, L, A]
+    s_action = actor(objective.student.rssm.feature(s_post)).mode
     variance = t_post["deter"].flatten(0, -2).var(0).mean()
     h_mse = ((s_post["deter"] - t_post["deter"]) ** 2).mean()
     half = t_action.shape[1] // 2

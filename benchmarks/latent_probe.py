@@ -38,7 +38,7 @@ from twist_data.randomisation import dr_preset
 from twist_data.render import DRRenderer
 from twist_data.tasks import TaskEnv
 from twist_models.agent import Agent, AgentState
-from twist_models.rssm import State
+from twist_models.rssm import POSTERIOR_READS, State
 from twist_models.teacher import Teacher, load_teacher
 
 
@@ -121,7 +121,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=200)
     parser.add_argument("--acting", choices=("teacher", "student"), default="teacher")
     parser.add_argument("--bin", type=int, default=50, help="steps per bin of the h profile")
-    parser.add_argument("--posterior", choices=("sample", "mode", "mean"), default="sample",
+    parser.add_argument("--posterior", choices=POSTERIOR_READS, default="sample",
                         help="how the student reads its posterior when acting")
     args = parser.parse_args()
     torch.manual_seed(0)
