@@ -16,8 +16,19 @@ component on the held-out episodes (every ``--holdout-every``-th, as ``twist-dis
 R² is 1 - MSE / variance per component over the held-out frames (0: no better than the mean).
 ``--within I:LOW:HIGH`` keeps only frames whose state component I lies in [LOW, HIGH], e.g.
 ``0:-0.6:0.6`` for cartpole frames with the cart in the central third of the view.
-Prints one JSON line. ``python benchmarks/image_state_probe.py DATASET [--agent AGENT]
-[--steps 300] [--preset quick] [--within I:LOW:HIGH]``
+
+``--near I:LOW:HIGH`` trains on every kept frame but also scores a second held-out set, the
+frames with state component I in [LOW, HIGH]. ``1:0.985:1`` selects cartpole's pole within
+10° of upright (cosine at least 0.985), where the teacher's actor needs the sine to ~0.035.
+For that set the probe reports the RMSE in the state's units beside ``near_std``, the RMSE
+of predicting the set's own mean.
+``--every N`` prints a line every N updates of the supervised CNN (its learning curve);
+``--supervised-only`` skips the other encoders; ``--norm layer`` probes the layer-normalised
+CNN (``--set encoder_norm=layer`` in ``twist-distil``).
+
+Prints JSON lines. ``python benchmarks/image_state_probe.py DATASET [--agent AGENT]
+[--steps 300] [--preset quick] [--within I:LOW:HIGH] [--near I:LOW:HIGH] [--every N]
+[--supervised-only] [--norm layer]``
 """
 
 from __future__ import annotations
@@ -33,8 +44,11 @@ from torch import nn
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.agent import Agent
-from twist_models.config import PRESETS, CNNConfig
+from twist_models.config import CNN_NORMS, PRESETS, CNNConfig
 from twist_models.networks import ImageEncoder
+
+#: Held-out images [n, H, W, 3] and their normalised states [n, S].
+TestSet = tuple[torch.Tensor, torch.Tensor]
 
 
 def frames(data: MatchingDataset, steps: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
@@ -43,25 +57,47 @@ def frames(data: MatchingDataset, steps: np.ndarray, rng: np.random.Generator) -
     return torch.as_tensor(out)
 
 
+def held_out_scores(encoder: nn.Module, head: nn.Module, tests: dict[str, TestSet],
+                    scale: torch.Tensor) -> dict[str, list[float]]:
+    """R² per component on each test set, and for ``near`` the RMSE in the state's units."""
+    scores = {}
+    with torch.no_grad():
+        for name, (images, truth) in tests.items():
+            error = ((head(encoder(images)) - truth) ** 2).mean(0)
+            scores[f"{name}_r2" if name != "all" else "r2"] = [
+                round(float(v), 3) for v in 1.0 - error / truth.var(0)]
+            if name == "near":
+                scores["near_rmse"] = [round(float(v), 3) for v in error.sqrt() * scale]
+    return scores
+
+
 def probe(encoder: nn.Module, train_encoder: bool, data: MatchingDataset, target: torch.Tensor,
-          train: np.ndarray, test: tuple[torch.Tensor, torch.Tensor], args: argparse.Namespace
-          ) -> list[float]:
-    """Train a linear head (and the encoder when ``train_encoder``) -> held-out R² per component."""
+          train: np.ndarray, tests: dict[str, TestSet], scale: torch.Tensor,
+          args: argparse.Namespace, name: str) -> dict[str, list[float]]:
+    """Train a linear head (and the encoder when ``train_encoder``) -> held-out scores; with
+    ``--every`` the supervised CNN also prints its scores along the way."""
     rng = np.random.default_rng(args.seed)
     head = nn.Linear(encoder.out_dim, target.shape[1])
     encoder.requires_grad_(train_encoder)
     params = [*head.parameters(), *(encoder.parameters() if train_encoder else [])]
     optimiser = torch.optim.Adam(params, lr=args.lr)
-    for _ in range(args.steps):
+    for update in range(1, args.steps + 1):
         steps = rng.choice(train, args.batch)
         loss = ((head(encoder(frames(data, steps, rng))) - target[steps]) ** 2).mean()
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
-    images, truth = test
-    with torch.no_grad():
-        error = ((head(encoder(images)) - truth) ** 2).mean(0)
-    return [round(float(v), 3) for v in 1.0 - error / truth.var(0)]
+        if train_encoder and args.every and update % args.every == 0 and update < args.steps:
+            print(json.dumps({"encoder": name, "updates": update,
+                              **held_out_scores(encoder, head, tests, scale)}), flush=True)
+    return held_out_scores(encoder, head, tests, scale)
+
+
+def component_range(spec: str, states: np.ndarray) -> np.ndarray:
+    """Mask of the steps whose state component I lies in [LOW, HIGH], from ``I:LOW:HIGH``."""
+    index, low, high = spec.split(":")
+    component = states[:, int(index)]
+    return (component >= float(low)) & (component <= float(high))
 
 
 def main() -> None:
@@ -76,32 +112,49 @@ def main() -> None:
     parser.add_argument("--test-frames", type=int, default=512)
     parser.add_argument("--within", help="I:LOW:HIGH, only frames with LOW <= state[I] <= HIGH")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--near", help="I:LOW:HIGH, a second held-out set scored in state units")
+    parser.add_argument("--every", type=int, default=0, help="learning-curve line every N updates")
+    parser.add_argument("--supervised-only", action="store_true")
+    parser.add_argument("--norm", choices=CNN_NORMS, default="none")
     args = parser.parse_args()
     torch.manual_seed(args.seed)
     data = open_dataset(args.dataset)
     states = data.column("state").astype(np.float32)
-    target = torch.as_tensor((states - states.mean(0)) / states.std(0).clip(1e-3))
+    mean, scale = states.mean(0), states.std(0).clip(1e-3)
+    target = torch.as_tensor((states - mean) / scale)
     held = np.repeat(heldout_episodes(data.n_episodes, args.holdout_every), data.episode_lengths)
-    kept = np.ones(held.size, bool)
-    if args.within:
-        index, low, high = args.within.split(":")
-        component = states[:, int(index)]
-        kept = (component >= float(low)) & (component <= float(high))
+    kept = component_range(args.within, states) if args.within else np.ones(held.size, bool)
     train, heldout = np.flatnonzero(~held & kept), np.flatnonzero(held & kept)
     rng = np.random.default_rng(args.seed + 1)
-    test_steps = np.sort(rng.choice(heldout, min(args.test_frames, heldout.size), replace=False))
-    test = (frames(data, test_steps, rng), target[test_steps])
+    subsets = {"all": heldout}
+    if args.near:
+        subsets["near"] = np.flatnonzero(held & kept & component_range(args.near, states))
+    tests: dict[str, TestSet] = {}
+    for name, steps in subsets.items():
+        if steps.size < 2:
+            raise SystemExit(f"only {steps.size} held-out frames in the {name!r} set")
+        chosen = np.sort(rng.choice(steps, min(args.test_frames, steps.size), replace=False))
+        tests[name] = (frames(data, chosen, rng), target[chosen])
     cnn = dataclasses.replace(PRESETS[args.preset].get("cnn", CNNConfig()),
-                              image_size=data.spec.image_height)
-    result = {"dataset": args.dataset, "preset": args.preset, "within": args.within,
-              "steps": args.steps,
-              "batch": args.batch, "train_frames": int(train.size),
-              "heldout_frames": int(test_steps.size),
-              "random_cnn": probe(ImageEncoder(cnn), False, data, target, train, test, args),
-              "supervised_cnn": probe(ImageEncoder(cnn), True, data, target, train, test, args)}
-    if args.agent:
+                              image_size=data.spec.image_height, norm=args.norm)
+    result: dict = {"dataset": args.dataset, "preset": args.preset, "norm": args.norm,
+                    "within": args.within, "near": args.near, "steps": args.steps,
+                    "batch": args.batch, "train_frames": int(train.size),
+                    "heldout_frames": int(tests["all"][0].shape[0])}
+    torch_scale = torch.as_tensor(scale)
+    if "near" in tests:
+        result["near_frames"] = int(tests["near"][0].shape[0])
+        spread = tests["near"][1].std(0, unbiased=False) * torch_scale
+        result["near_std"] = [round(float(v), 3) for v in spread]
+    if not args.supervised_only:
+        result["random_cnn"] = probe(ImageEncoder(cnn), False, data, target, train, tests,
+                                     torch_scale, args, "random_cnn")
+    result["supervised_cnn"] = probe(ImageEncoder(cnn), True, data, target, train, tests,
+                                     torch_scale, args, "supervised_cnn")
+    if args.agent and not args.supervised_only:
         encoder = Agent.load(args.agent).student.encoder
-        result["student"] = probe(encoder, False, data, target, train, test, args)
+        result["student"] = probe(encoder, False, data, target, train, tests, torch_scale,
+                                  args, "student")
     print(json.dumps(result))
 
 
