@@ -13,6 +13,7 @@ from twist_data.errors import CheckpointError, CheckpointMismatchError, ConfigEr
 from twist_models.config import CNNConfig, WorldModelConfig, teacher_preset
 from twist_models.losses import (
     categorical_kl,
+    gaussian_nll,
     kl_balance_loss,
     lambda_returns,
     symexp,
@@ -277,6 +278,43 @@ def test_overshoot_compares_rollouts_only_until_the_next_episode() -> None:
 def test_overshoot_is_refused_for_image_models() -> None:
     with pytest.raises(ConfigError, match="overshoot is for state models"):
         WorldModelConfig(obs="image", overshoot=15)
+
+
+def test_state_noise_perturbs_what_the_encoder_reads_and_nothing_else() -> None:
+    config = dataclasses.replace(teacher_preset("tiny", 5, 2).world_model, state_noise=0.2)
+    noisy, exact = WorldModel(config), WorldModel(dataclasses.replace(config, state_noise=0.0))
+    exact.load_state_dict(noisy.state_dict())
+    batch = _batch()
+    torch.manual_seed(3)
+    drawn = noisy.embed(batch["state"])
+    torch.manual_seed(3)
+    expected = exact.encoder(batch["state"] + 0.2 * torch.randn_like(batch["state"]))
+    torch.testing.assert_close(drawn, expected)
+    assert not torch.allclose(drawn, exact.embed(batch["state"]), atol=1e-3)
+    # Exact states draw nothing from the RNG and read the same every time.
+    torch.manual_seed(4)
+    first = exact.embed(batch["state"])
+    after = torch.randn(1)
+    torch.manual_seed(4)
+    torch.testing.assert_close(exact.embed(batch["state"]), first)
+    torch.testing.assert_close(torch.randn(1), after)
+    # The decoder is scored against the exact state, not the one the encoder read.
+    torch.manual_seed(5)
+    _, _, metrics = noisy.loss(batch)
+    torch.manual_seed(5)
+    post, _ = noisy.rssm.observe(noisy.embed(batch["state"]), batch["action"], batch["is_first"])
+    decoded = noisy.decoder(noisy.rssm.feature(post))
+    torch.testing.assert_close(metrics["recon_loss"], gaussian_nll(decoded, batch["state"]).mean())
+
+
+@pytest.mark.parametrize(("obs", "noise", "message"), [
+    ("image", 0.1, "state_noise perturbs what a state encoder reads"),
+    ("state", -0.1, "state_noise"),
+])
+def test_state_noise_is_refused_off_state_models_or_negative(obs: str, noise: float,
+                                                             message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        WorldModelConfig(obs=obs, state_noise=noise)
 
 
 def test_tiny_world_model_overfits_a_toy_sequence() -> None:

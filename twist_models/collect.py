@@ -187,6 +187,9 @@ class CollectConfig:
     overshoot: int | None = None
     """Override of the world model's open-loop overshooting steps (0: off); None keeps the
     preset's."""
+    state_noise: float | None = None
+    """Override of the noise through which the teacher reads the state (``WorldModelConfig.
+    state_noise``); None keeps the preset's (0: exact states)."""
     discount: float | None = None
     """Override of the actor-critic's per-agent-step discount; None keeps the preset's (0.99,
     DreamerV2's at action repeat 2: keep gamma ** (1 / action_repeat) fixed to keep the
@@ -225,7 +228,8 @@ class CollectConfig:
                            return_norm=self.return_norm, critic_head=self.critic_head,
                            actor_lr=self.actor_lr, critic_lr=self.critic_lr,
                            slow_target_every=self.slow_target_every, discount=self.discount)
-        model = _given(model_lr=self.model_lr, overshoot=self.overshoot)
+        model = _given(model_lr=self.model_lr, overshoot=self.overshoot,
+                       state_noise=self.state_noise)
         return dataclasses.replace(
             config, explore_noise=self.explore_noise,
             world_model=dataclasses.replace(config.world_model, **model),

@@ -210,6 +210,12 @@ class WorldModelConfig:
     rewards are also fitted to the recorded ones (0: off, as DreamerV2; state models only)."""
     overshoot_starts: int = 64
     """Posterior states (drawn at random from the batch) that start the open-loop rollouts."""
+    state_noise: float = 0.0
+    """Std of Gaussian noise added to every privileged-state component each time the state
+    encoder reads it: in training, acting and as the distillation target alike, so a state
+    teacher perceives the state about as coarsely as a student reads it from images and its
+    GRU and actor learn to work from such a belief (``state`` models only; decoder and
+    overshooting targets stay exact; 0: exact states, as the paper)."""
 
     def __post_init__(self) -> None:
         if self.obs not in ("state", "image"):
@@ -217,7 +223,10 @@ class WorldModelConfig:
         if self.recon not in ("obs", "state"):
             raise ConfigError(f"recon must be 'obs' or 'state', got {self.recon!r}")
         require_positive(self, "action_dim", "model_lr", "overshoot_starts")
-        require_non_negative(self, "overshoot")
+        require_non_negative(self, "overshoot", "state_noise")
+        if self.state_noise and self.obs != "state":
+            raise ConfigError(f"state_noise perturbs what a state encoder reads, got "
+                              f"state_noise={self.state_noise} with obs={self.obs!r}")
         if self.overshoot and self.obs != "state":
             raise ConfigError(f"overshoot is for state models (decoding images open-loop would "
                               f"dominate the update), got overshoot={self.overshoot} with "

@@ -43,6 +43,10 @@ class WorldModel(nn.Module):
         return self.config.obs
 
     def embed(self, observation: torch.Tensor) -> torch.Tensor:
+        """Encoder features of ``observation`` ([..., S] state or [..., H, W, 3] image); a state
+        is read through ``state_noise`` (a fresh draw on every call)."""
+        if self.config.state_noise:
+            observation = observation + self.config.state_noise * torch.randn_like(observation)
         return self.encoder(observation)
 
     def loss(self, batch: dict[str, torch.Tensor],
