@@ -12,17 +12,22 @@ floor is one it must reach.
 On cartpole the state is (cart x, cos angle, sin angle, cart velocity, angular velocity);
 near upright, noise on the sine (component 2) is noise on the angle in radians.
 
+``--exact`` adds a teacher trained on noisy states (``twist-collect --set state_noise=S``)
+reading them exactly, its own noise switched off: does it act worse because it learned
+less, or because it sees less?
+
 ``--read mean`` (or ``mode``) adds the noise-free teacher taking z from its posterior's class
 probabilities (or most likely classes) instead of a sample.
 
 Prints one JSON line: the mean return per setting. ``python
 benchmarks/oracle_noise_tolerance.py TEACHER --noise 2:0.035 --noise 4:0.2 [--read mean]
-[--episodes 5]``
+[--exact] [--episodes 5]``
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 
@@ -68,6 +73,8 @@ def main() -> None:
                         help="also the noise-free teacher taking z from its posterior's mode "
                              "or mean instead of a sample (what a student acting with "
                              "twist-eval --posterior asks of the teacher's actor)")
+    parser.add_argument("--exact", action="store_true",
+                        help="also the teacher with its own state_noise switched off")
     parser.add_argument("--episodes", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
@@ -87,6 +94,11 @@ def main() -> None:
     for read in args.read:
         returns[f"read:{read}"] = mean_return(StateAgent(
             teacher.teacher, teacher.task, action_repeat=teacher.action_repeat, posterior=read))
+    if args.exact:
+        exact = copy.deepcopy(teacher.teacher)
+        exact.world_model.config = dataclasses.replace(exact.world_model.config, state_noise=0.0)
+        returns["exact"] = mean_return(StateAgent(exact, teacher.task,
+                                                  action_repeat=teacher.action_repeat))
     for index, sigma in args.noise:
         returns[f"{index}:{sigma:g}"] = mean_return(
             NoisyStateAgent(teacher, index, sigma, args.seed))
