@@ -45,7 +45,7 @@ def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
 
 @torch.no_grad()
 def agreement(objective: Distillation, teacher: Teacher, batch: Batch) -> dict[str, float]:
-    s_post, t_post, terms = objective.filter(batch)
+    s_post, t_post, terms, _ = objective.filter(batch)
     actor = teacher.actor_critic.actor
     t_action = actor(teacher.world_model.rssm.feature(t_post)).mode  # [B, L, A]
     s_action = actor(objective.student.rssm.feature(s_post)).mode

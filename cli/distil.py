@@ -13,6 +13,7 @@ import typer
 from twist_cli.common import new_app, out, parse_settings, progress_bar, run_app
 from twist_models.distill import (
     DISTIL_PRESETS,
+    RECIPES,
     DistilConfig,
     distil,
     distil_preset,
@@ -33,6 +34,9 @@ def main(
         help="Teacher checkpoint [the dataset's final teacher].")] = None,
     preset: Annotated[str, typer.Option(
         help=f"Student sizes and schedule: {', '.join(DISTIL_PRESETS)}.")] = "quick",
+    recipe: Annotated[str, typer.Option(
+        help=f"Distillation recipe: {', '.join(RECIPES)} (README, 'Recipes').")
+    ] = "paper",
     steps: Annotated[int | None, typer.Option(help="Student updates.")] = None,
     batch: Annotated[int | None, typer.Option(help="Windows per update [16].")] = None,
     length: Annotated[int | None, typer.Option(help="Steps per window L [50].")] = None,
@@ -69,7 +73,7 @@ def main(
     if resume and (folder / "config.json").exists():
         config = dataclasses.replace(stored_config(folder), **given)
     else:
-        config = distil_preset(preset, **given)
+        config = distil_preset(preset, recipe, **given)
     device = initialise_distributed(device)
     with progress_bar(quiet, "distilling", describe) as report:
         summary = distil(dataset, folder, config, teacher=teacher, resume=resume, device=device,

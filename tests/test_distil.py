@@ -130,7 +130,7 @@ def test_action_matching_compares_the_actors_modes_and_trains_only_the_student()
     torch.manual_seed(1)  # the sampling draws of the filter
     loss, terms = objective(batch)
     torch.manual_seed(1)
-    s_post, t_post, _ = objective.filter(batch)
+    s_post, t_post, _, _ = objective.filter(batch)
     actor, teacher = objective.teacher.actor_critic.actor, objective.teacher
     with torch.no_grad():
         a_student = actor(objective.student.rssm.feature(s_post)).mode
@@ -474,7 +474,7 @@ def test_mean_filters_are_deterministic_and_act_as_they_were_trained() -> None:
         for seed in (1, 2):
             torch.manual_seed(seed)
             with torch.no_grad():
-                runs[name, seed] = candidate.filter(batch)
+                runs[name, seed] = candidate.filter(batch)[:3]
     (s1, t1, terms1), (s2, t2, terms2) = runs["mean", 1], runs["mean", 2]
     for a, b in ((s1, s2), (t1, t2)):  # no draw reaches either filter
         assert torch.equal(a["deter"], b["deter"]) and torch.equal(a["stoch"], b["stoch"])

@@ -7,6 +7,7 @@ unpickling code (it is a twist checkpoint of kind ``agent``).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,10 +52,12 @@ class Agent(nn.Module):
     @classmethod
     def from_models(cls, student: Student, teacher: Teacher,
                     info: dict[str, Any] | None = None) -> Agent:
-        """Bundle a trained student with its teacher's actor (weights are copied)."""
-        agent = cls(AgentConfig(student=student.config,
-                                actor_critic=teacher.config.actor_critic), info)
-        agent.student.load_state_dict(student.state_dict())
+        """Bundle a trained student with its teacher's actor (weights are copied). A state
+        head, a training target only, is left out."""
+        acting = dataclasses.replace(student.config, state_dim=0)
+        agent = cls(AgentConfig(student=acting, actor_critic=teacher.config.actor_critic), info)
+        agent.student.load_state_dict({k: v for k, v in student.state_dict().items()
+                                       if not k.startswith("state_head.")})
         agent.actor.load_state_dict(teacher.actor_critic.actor.state_dict())
         return agent.to(next(student.parameters()).device)
 

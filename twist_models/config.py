@@ -280,9 +280,14 @@ class StudentConfig:
     frames: int = 1
     """Images the posterior reads per step: the current one and the ``frames - 1`` before it,
     each encoded alone by the CNN (1: the paper's single image)."""
+    state_dim: int = 0
+    """Length of the privileged state a linear head reads from the posterior's image input,
+    a training target of the ``dense`` recipe (0: no head, the paper's student; acting never
+    uses it)."""
 
     def __post_init__(self) -> None:
         require_positive(self, "action_dim", "frames")
+        require_non_negative(self, "state_dim")
 
 
 @dataclass(frozen=True)
@@ -341,15 +346,18 @@ def image_dreamer_preset(name: str, state_dim: int, action_dim: int, image_size:
 
 
 def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
-                   frames: int = 1, norm: str = "none") -> StudentConfig:
+                   frames: int = 1, norm: str = "none", state_head: bool = False
+                   ) -> StudentConfig:
     """The student of size preset ``name`` (its CNN, normalised by ``norm``) for ``teacher``,
-    whose RSSM it copies, reading ``frames`` images per step."""
+    whose RSSM it copies, reading ``frames`` images per step, with a read-out head of the
+    teacher's state if ``state_head``."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
     cnn = dataclasses.replace(PRESETS[name].get("cnn", CNNConfig()), image_size=image_size,
                               norm=norm)
     return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,
-                         cnn=cnn, frames=frames)
+                         cnn=cnn, frames=frames,
+                         state_dim=teacher.world_model.state_dim if state_head else 0)
 
 
 def to_json(config: Any) -> dict[str, Any]:

@@ -45,7 +45,7 @@ from torch.utils.data import DataLoader
 from twist_data.errors import ConfigError, TwistError
 from twist_data.randomisation import derived_seed
 from twist_data.reader import MatchingDataset, open_dataset
-from twist_data.sampler import SamplerConfig, WindowDataset, WindowSampler
+from twist_data.sampler import SamplerConfig, WindowDataset, WindowSampler, heldout_episodes
 from twist_models.agent import Agent
 from twist_models.checkpoint import (
     move_optimiser_state,
@@ -66,8 +66,17 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import plot_agreement
+from twist_models.frame_targets import (
+    FrameBatches,
+    TeacherTargets,
+    actor_sensitivity,
+    frame_agreement,
+    frame_terms,
+    teacher_targets,
+)
 from twist_models.losses import (
     action_matching_loss,
+    categorical_kl,
     distillation_loss,
     imagined_distillation_loss,
 )
@@ -84,10 +93,14 @@ from twist_models.teacher import Teacher, find_teacher, load_teacher
 log = logging.getLogger(__name__)
 
 KEYS = ("image", "state", "action", "is_first")
-TERMS = ("h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl", "action")
+TERMS = ("h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl", "action",
+         "frame_post_kl", "state")
 METRIC_COLUMNS = ("updates", "wall_s", "updates_per_s", "data_wait_share", "loss", *TERMS,
                   "grad_norm")
-HELDOUT_COLUMNS = ("updates", "h_mse", "post_kl", "prior_kl", "imagined_h_mse")
+HELDOUT_COLUMNS = ("updates", "frame_updates", "h_mse", "h_explained", "post_kl", "prior_kl",
+                   "imagined_h_mse", "frame_post_kl", "frame_action_rmse", "frame_action_corr")
+FRAME_METRIC_COLUMNS = ("frame_updates", "wall_s", "updates_per_s", "loss", "frame_post_kl",
+                        "state", "grad_norm")
 FINAL_STUDENT = "student.pt"
 AGENT = "agent.pt"
 
@@ -98,8 +111,13 @@ class DistilError(TwistError):
 
 @dataclass(frozen=True)
 class DistilConfig:
-    """One distillation run: student size, batches, the two losses and the schedule."""
+    """One distillation run: student size, batches, the losses and the schedule. The defaults
+    are the paper's objective (the ``paper`` recipe); :data:`RECIPES` name other starting
+    points."""
 
+    recipe: str = "paper"
+    """The named recipe this config started from (:data:`RECIPES`), kept as a label with the
+    run and its agent bundle; the fields below are what ran."""
     student: str = "quick"
     """Student size preset (its CNN: ``tiny``, ``quick``, ``paper``); the RSSM is the teacher's."""
     steps: int = 50_000
@@ -149,6 +167,20 @@ class DistilConfig:
     (see :class:`~twist_models.config.CNNConfig`)."""
     view: int | None = None
     """Camera view shown at every step; None: a random one of the K per step."""
+    frame_post_weight: float = 0.0
+    """Weight of the per-frame posterior term: KL of the student's posterior to the
+    teacher's, both at the teacher's h (:mod:`twist_models.frame_targets`; 0: off, the
+    paper)."""
+    state_weight: float = 0.0
+    """Weight of the per-frame state read-out term, each state component weighted by the
+    teacher actor's sensitivity to it (adds a linear state head to the student; 0: off)."""
+    frame_steps: int = 0
+    """Updates of a first stage on single frames with the per-frame terms alone, before
+    Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
+    frame_batch: int = 64
+    """Frames per update of the first stage."""
+    frame_eval_every: int = 500
+    """First-stage updates between held-out evaluations and checkpoints."""
     rare_states: float = 0.0
     """Draw training windows favouring D's rarely visited states, with this exponent (see
     :func:`twist_data.sampler.state_rarity`; 0: uniform, the paper; held-out windows stay
@@ -176,11 +208,16 @@ class DistilConfig:
         if self.student not in PRESETS:
             raise ConfigError(f"unknown student preset {self.student!r}; valid presets are: "
                               f"{', '.join(PRESETS)}")
+        require_choice(self, "recipe", tuple(RECIPES))
         require_positive(self, "steps", "batch_size", "length", "horizon", "frames", "lr",
-                         "heldout_windows", "eval_every", "checkpoint_every", "snapshot_every")
+                         "heldout_windows", "eval_every", "checkpoint_every", "snapshot_every",
+                         "frame_batch", "frame_eval_every")
         require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
                              "post_weight", "imagined_weight", "action_weight", "workers",
-                             "rare_states")
+                             "rare_states", "frame_post_weight", "state_weight", "frame_steps")
+        if self.frame_steps and not self.frame_terms:
+            raise ConfigError(f"frame_steps={self.frame_steps} trains on the per-frame terms "
+                              "alone, but frame_post_weight and state_weight are both 0")
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
@@ -192,12 +229,29 @@ class DistilConfig:
             raise ConfigError("freeze_dynamics keeps the teacher's copied dynamics fixed; it "
                               "needs copy_dynamics")
 
+    @property
+    def frame_terms(self) -> bool:
+        """Whether the per-frame terms train (and the teacher's targets over D are needed)."""
+        return self.frame_post_weight > 0 or self.state_weight > 0
+
     def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
         return SamplerConfig(length=self.length, batch_size=batch_size or self.batch_size,
                              view=self.view, seed=seed, keys=KEYS,
                              holdout_every=self.holdout_every, split=split,
                              rare_states=self.rare_states if split == "train" else 0.0)
 
+
+#: Recipes by name: what each sets on top of a size preset. ``paper``: Eq. 3 and 4 alone
+#: (with the student's RSSM started from the teacher's, which every preset does). ``dense``:
+#: the same, plus the per-frame targets of :mod:`twist_models.frame_targets`, first alone on
+#: single frames for the size preset's ``FRAME_STEPS`` updates, then beside Eq. 3/4, and a
+#: layer-normalised CNN (see README, "Recipes", for what each part is measured to give).
+RECIPES: dict[str, dict[str, Any]] = {
+    "paper": {},
+    "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0},
+}
+#: Updates of the ``dense`` recipe's single-frame stage at each size preset.
+FRAME_STEPS = {"paper": 20_000, "quick": 3_000, "tiny": 4}
 
 DISTIL_PRESETS: dict[str, DistilConfig] = {
     # The paper's batch, window and horizon; Eq. 4 from every posterior state.
@@ -214,16 +268,31 @@ DISTIL_PRESETS: dict[str, DistilConfig] = {
 }
 
 
-def distil_preset(name: str, **overrides: Any) -> DistilConfig:
-    """Preset ``name`` with fields replaced by ``overrides`` (None values are ignored)."""
+def distil_preset(name: str, recipe: str = "paper", **overrides: Any) -> DistilConfig:
+    """Size preset ``name`` with ``recipe``'s settings (:data:`RECIPES`), then fields replaced
+    by ``overrides`` (None values are ignored)."""
     if name not in DISTIL_PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: "
                           f"{', '.join(DISTIL_PRESETS)}")
-    return dataclasses.replace(DISTIL_PRESETS[name],
-                               **{k: v for k, v in overrides.items() if v is not None})
+    if recipe not in RECIPES:
+        raise ConfigError(f"unknown recipe {recipe!r}; valid recipes are: {', '.join(RECIPES)}")
+    settings = dict(RECIPES[recipe], recipe=recipe)
+    if recipe == "dense":
+        settings["frame_steps"] = FRAME_STEPS[name]
+    settings.update({k: v for k, v in overrides.items() if v is not None})
+    return dataclasses.replace(DISTIL_PRESETS[name], **settings)
 
 
 # -- one update ---------------------------------------------------------------------------------
+def frame_loss(terms: Mapping[str, torch.Tensor], config: DistilConfig) -> torch.Tensor:
+    """The per-frame terms weighted by ``config`` (a student without a state head has no
+    ``state`` term)."""
+    loss = config.frame_post_weight * terms["frame_post_kl"]
+    if "state" in terms:
+        loss = loss + config.state_weight * terms["state"]
+    return loss
+
+
 def draws(batch_shape: tuple[int, ...], stoch: int, device: torch.device) -> torch.Tensor:
     """Uniform sampling draws [*batch_shape, S, 1] for :func:`twist_models.rssm.sample_one_hot`."""
     return torch.rand(*batch_shape, stoch, 1, device=device)
@@ -233,11 +302,14 @@ class Distillation(nn.Module):
     """The objective as a module around the student (so DistributedDataParallel can wrap it);
     the frozen teacher is held outside the module tree: it is neither trained nor synced."""
 
-    def __init__(self, student: Student, teacher: Teacher, config: DistilConfig) -> None:
+    def __init__(self, student: Student, teacher: Teacher, config: DistilConfig,
+                 sensitivity_scale: float = 1.0) -> None:
         super().__init__()
         self.student = student
         self._teacher = [teacher.requires_grad_(False)]  # a target: gradients stop at it
         self.config = config
+        # The per-frame state weights are divided by D's mean sensitivity (TeacherTargets).
+        self.sensitivity_scale = sensitivity_scale
 
     @property
     def teacher(self) -> Teacher:
@@ -247,9 +319,13 @@ class Distillation(nn.Module):
                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Total loss [] and every term [] for a batch of windows ({k: [B, L, ...]})."""
         c = self.config
-        s_post, t_post, terms = self.filter(batch)
+        s_post, t_post, terms, embed = self.filter(batch)
         loss = (c.h_weight * terms["h"] + c.prior_weight * terms["prior_kl"]
                 + c.post_weight * terms["post_kl"])
+        if c.frame_terms:
+            frame = self.window_frame_terms(embed, t_post, batch["state"])
+            terms.update(frame)
+            loss = loss + frame_loss(frame, c)
         if c.action_weight > 0:
             terms["action"] = self.action_term(s_post, t_post)
             loss = loss + c.action_weight * terms["action"]
@@ -260,10 +336,11 @@ class Distillation(nn.Module):
         return loss, terms
 
     def filter(self, batch: Mapping[str, torch.Tensor]
-               ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+               ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor],
+                          dict[str, torch.Tensor], torch.Tensor]:
         """Both models' posteriors over the windows (student on images, teacher on states,
         from the same draws when shared) and the Eq. 3 terms: (student posterior, teacher
-        posterior, terms)."""
+        posterior, terms, the student's posterior input [B, L, E'])."""
         action, is_first = batch["action"], batch["is_first"]
         post_draws = None
         if self.config.shared_draws:
@@ -272,10 +349,18 @@ class Distillation(nn.Module):
             wm = self.teacher.world_model
             t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
                                               uniform=post_draws, read=self.config.filter_read)
-        s_post, s_prior = self.student.observe(batch["image"], action, is_first,
-                                               uniform=post_draws, read=self.config.filter_read)
+        embed = self.student.embed(batch["image"], is_first)
+        s_post, s_prior = self.student.rssm.observe(embed, action, is_first, uniform=post_draws,
+                                                    read=self.config.filter_read)
         terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
-        return s_post, t_post, terms
+        return s_post, t_post, terms, embed
+
+    def window_frame_terms(self, embed: torch.Tensor, t_post: dict[str, torch.Tensor],
+                           state: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The per-frame terms at every step of the windows, at the teacher's h there."""
+        sensitivity = actor_sensitivity(self.teacher, t_post["deter"], state)
+        return frame_terms(self.student, self.teacher, embed, t_post["deter"], state,
+                           sensitivity / self.sensitivity_scale, t_post["logits"])
 
     def action_term(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
                     ) -> torch.Tensor:
@@ -330,8 +415,11 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(seed)
         objective = Distillation(student, teacher, dataclasses.replace(config, shared_draws=True))
-        s_post, t_post, terms = objective.filter(batch)
+        s_post, t_post, terms, embed = objective.filter(batch)
         imagined = objective.imagined_terms(s_post, t_post)
+        frames = frame_agreement(student, teacher, embed, t_post["deter"], batch["state"])
+        frame_kl = categorical_kl(student.rssm.posterior_logits(t_post["deter"], embed),
+                                  t_post["logits"]).mean()
     deter = student.config.rssm.deter
     h_mse = float(terms["h"]) / deter
     # An h-MSE means little without the scale of the teacher's h (on cartpole its variance is
@@ -339,7 +427,8 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
     h_variance = float(t_post["deter"].flatten(0, -2).var(0).mean())
     return {"h_mse": h_mse, "h_explained": 1.0 - h_mse / max(h_variance, 1e-12),
             "post_kl": float(terms["post_kl"]), "prior_kl": float(terms["prior_kl"]),
-            "imagined_h_mse": float(imagined["h"]) / deter}
+            "imagined_h_mse": float(imagined["h"]) / deter, "frame_post_kl": float(frame_kl),
+            **frames}
 
 
 # -- the run ------------------------------------------------------------------------------------
@@ -389,7 +478,8 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     teacher_path = Path(teacher) if teacher is not None else find_teacher(dataset_path)
     teacher_model, _ = load_teacher(teacher_path, data.spec.state_dim, data.spec.action_dim)
     student_config = student_preset(config.student, teacher_model.config, data.spec.image_height,
-                                    config.frames, config.encoder_norm)
+                                    config.frames, config.encoder_norm,
+                                    state_head=config.state_weight > 0)
     _check_output(out, config, student_config, resume)
     rank, world = _rank_and_world()
     run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,
@@ -467,12 +557,13 @@ class _Run:
             checkpoint = read_checkpoint(latest, kind="student")
             restore(checkpoint, self.student, student_config, {"student": self.optimiser})
             self.updates = checkpoint.counters["updates"]
+            self.frame_updates = checkpoint.counters.get("frame_updates", 0)
             self.seconds = float(checkpoint.extra.get("seconds", 0.0))
             self.heldout_first = checkpoint.extra.get("heldout_first", {})
             torch.set_rng_state(torch.tensor(checkpoint.extra["torch_rng"], dtype=torch.uint8))
             log.info("resumed the student at update %d from %s", self.updates, latest)
         else:
-            self.updates, self.seconds, self.heldout_first = 0, 0.0, {}
+            self.updates, self.frame_updates, self.seconds, self.heldout_first = 0, 0, 0.0, {}
             if config.copy_dynamics:
                 copy_teacher_dynamics(self.student, self.teacher.world_model.rssm)
             # Ranks start from one student but draw their own latent samples and noise.
@@ -481,7 +572,10 @@ class _Run:
             freeze_dynamics(self.student)
         self.student.to(device)
         move_optimiser_state(self.optimiser, device)
-        self.objective: nn.Module = Distillation(self.student, self.teacher, config)
+        self.targets = self._teacher_targets() if config.frame_terms else None
+        self.objective: nn.Module = Distillation(
+            self.student, self.teacher, config,
+            self.targets.scale if self.targets is not None else 1.0)
         if world > 1:
             self.objective = nn.parallel.DistributedDataParallel(
                 self.objective, device_ids=[device.index] if device.type == "cuda" else None)
@@ -493,6 +587,12 @@ class _Run:
                 {"distil": to_json(config), "student": to_json(student_config),
                  "teacher": str(teacher_path), "dataset": str(dataset_path),
                  "world_size": world}, indent=2))
+
+    def _teacher_targets(self) -> TeacherTargets:
+        c = self.config
+        train = np.flatnonzero(~heldout_episodes(self.data.n_episodes, c.holdout_every))
+        return teacher_targets(self.teacher, self.data, train, read=c.filter_read,
+                               seed=derived_seed(c.seed, 6))
 
     def _optimiser(self) -> torch.optim.Optimizer:
         o = self.config.optim
@@ -532,7 +632,8 @@ class _Run:
             self.heldout_first = metrics
         self.heldout_last = metrics
         if self.writes:
-            append_csv(self.out / "heldout.csv", {"updates": self.updates, **metrics},
+            append_csv(self.out / "heldout.csv", {"updates": self.updates,
+                                                  "frame_updates": self.frame_updates, **metrics},
                        HELDOUT_COLUMNS)
             for key, value in metrics.items():
                 self.board.scalar(f"heldout/{key}", value, self.updates)
@@ -543,6 +644,8 @@ class _Run:
         c = self.config
         if self.updates == 0 and not (self.out / "heldout.csv").exists():
             self.evaluate()
+        if self.frame_updates < c.frame_steps and self.updates == 0:
+            self.frame_stage(on_progress)
         windows = self._windows() if self.updates < c.steps else iter(())
         params = list(self.student.parameters())
         sums: dict[str, float] = {}
@@ -582,7 +685,8 @@ class _Run:
                         if key in row:
                             self.board.scalar(f"train/{key}", row[key], self.updates)
                 if on_progress is not None:
-                    on_progress(Progress(self.updates, c.steps, row["updates_per_s"],
+                    on_progress(Progress(self.frame_updates + self.updates,
+                                         c.frame_steps + c.steps, row["updates_per_s"],
                                          row["data_wait_share"], row["loss"],
                                          heldout["h_mse"]))
                 sums, interval = {}, {"train": 0.0, "wait": 0.0, "done": 0}
@@ -604,6 +708,54 @@ class _Run:
             (self.out / "summary.json").write_text(json.dumps(summary.to_json(), indent=2))
         return summary
 
+    def frame_stage(self, on_progress: Callable[[Progress], None] | None) -> None:
+        """The first stage: the per-frame terms alone on single training frames, for
+        ``frame_steps`` updates; resumable at its evaluation points."""
+        c = self.config
+        batches = FrameBatches(self.data, self.targets, c.frame_batch, c.frames, c.view,
+                               seed=derived_seed(c.seed, 7, self.frame_updates, self.rank))
+        params = [p for p in self.student.parameters() if p.requires_grad]
+        sums: dict[str, float] = {}
+        done, spent, wall = 0, 0.0, time.perf_counter()
+        log.info("frame stage: %d updates of %d frames", c.frame_steps - self.frame_updates,
+                 c.frame_batch)
+        while self.frame_updates < c.frame_steps:
+            tick = time.perf_counter()
+            batch = {k: v.to(self.device, non_blocking=True) for k, v in batches.batch().items()}
+            embed = self.student.encoder(batch["image"]).flatten(1)  # most recent frame first
+            terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
+                                batch["state"], batch["sensitivity"])
+            loss = frame_loss(terms, c)
+            self.optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            if self.world > 1:  # this stage runs outside DistributedDataParallel
+                for p in params:
+                    if p.grad is not None:
+                        torch.distributed.all_reduce(p.grad)
+                        p.grad /= self.world
+            grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
+            self.optimiser.step()
+            for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
+                sums[key] = sums.get(key, 0.0) + float(value.detach())
+            spent += time.perf_counter() - tick
+            done += 1
+            self.frame_updates += 1
+            if self.frame_updates % c.frame_eval_every == 0 or self.frame_updates == c.frame_steps:
+                now = time.perf_counter()
+                self.seconds, wall = self.seconds + now - wall, now
+                row = {"frame_updates": self.frame_updates, "wall_s": round(self.seconds, 2),
+                       "updates_per_s": done / spent, **{k: v / done for k, v in sums.items()}}
+                heldout = self.evaluate()
+                if self.writes:
+                    append_csv(self.out / "frame-metrics.csv", row, FRAME_METRIC_COLUMNS)
+                if on_progress is not None:
+                    on_progress(Progress(self.frame_updates, c.frame_steps + c.steps,
+                                         row["updates_per_s"], 0.0, row["loss"],
+                                         heldout["h_mse"]))
+                sums, done, spent = {}, 0, 0.0
+                self._checkpoint(self.out / "latest.pt")
+        self.seconds += time.perf_counter() - wall
+
     def _bundle(self, path: Path) -> Path:
         # Every snapshot is deployable too: the return need not rise with the updates (it fell
         # from 559 to 403 between 800 and 2,000 in one run while the latents kept improving;
@@ -611,7 +763,8 @@ class _Run:
         # by evaluating the snapshots on episodes other than the reported ones.
         if self.writes:
             info = {**self.data.spec.image_agent_info(), "dataset": str(self.dataset_path),
-                    "teacher": str(self.teacher_path), "student_updates": self.updates}
+                    "teacher": str(self.teacher_path), "student_updates": self.updates,
+                    "recipe": self.config.recipe, "frame_updates": self.frame_updates}
             Agent.from_models(self.student, self.teacher, info).save(path)
         return path
 
@@ -621,7 +774,8 @@ class _Run:
                      "heldout_first": self.heldout_first, "distil": to_json(self.config),
                      "teacher": str(self.teacher_path), "dataset": str(self.dataset_path)}
             save_checkpoint(path, "student", self.student, self.student.config,
-                            {"student": self.optimiser}, {"updates": self.updates}, extra)
+                            {"student": self.optimiser},
+                            {"updates": self.updates, "frame_updates": self.frame_updates}, extra)
         return path
 
 

@@ -136,3 +136,20 @@ def action_matching_loss(student_action: torch.Tensor, teacher_action: torch.Ten
     over A and averaged over the rest, []. Not in the paper: it weights the latent errors by
     how much the actor the student serves responds to them."""
     return ((student_action - teacher_action.detach()) ** 2).sum(-1).mean()
+
+
+# -- per-frame targets (the ``dense`` recipe; not in the paper) ----------------------------------
+def frame_posterior_loss(student_logits: torch.Tensor, teacher_logits: torch.Tensor
+                         ) -> torch.Tensor:
+    """KL(q_student(z_t | h_t, e_image) || q_teacher(z_t | h_t, e_state)) with both posteriors
+    read at the *teacher's* h_t: logits [..., S, C] -> [] (mean over the leading dims). One
+    frame's encoding is judged on its own, with no error passed back through the recurrence."""
+    return categorical_kl(student_logits, teacher_logits.detach()).mean()
+
+
+def weighted_state_loss(prediction: torch.Tensor, state: torch.Tensor, weight: torch.Tensor
+                        ) -> torch.Tensor:
+    """sum_i w_i (prediction_i - state_i)^2: prediction, state, weight [..., S] -> [] (mean over
+    the leading dims). With w the actor's squared sensitivity to each state component this is
+    the first-order squared action error each component's read-out error alone would cause."""
+    return (weight.detach() * (prediction - state.detach()) ** 2).sum(-1).mean()

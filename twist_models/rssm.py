@@ -125,7 +125,7 @@ class RSSM(nn.Module):
                     for k, v in prev.items()}
             action = action * keep.unsqueeze(-1)
         deter = self._deter(prev, action)
-        logits = self._logits(self.obs_out(torch.cat([deter, embed], -1)))
+        logits = self.posterior_logits(deter, embed)
         if read == "sample":
             stoch = sample_one_hot(logits, uniform)
         elif read == "mode":
@@ -135,6 +135,12 @@ class RSSM(nn.Module):
         else:
             require_posterior_read(read)
         return {"deter": deter, "logits": logits, "stoch": stoch}
+
+    def posterior_logits(self, deter: torch.Tensor, embed: torch.Tensor) -> torch.Tensor:
+        """q(z_t | h_t, e_t) as logits [..., S, C] from ``deter`` [..., D] and ``embed``
+        [..., E]: the posterior head alone, for any h (a per-frame target reads it at the
+        teacher's h)."""
+        return self._logits(self.obs_out(torch.cat([deter, embed], -1)))
 
     # -- sequences --------------------------------------------------------------------------
     def observe(self, embed: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,

@@ -24,7 +24,16 @@ class Student(nn.Module):
         super().__init__()
         self.config = config
         self.encoder = ImageEncoder(config.cnn)
-        self.rssm = RSSM(config.rssm, config.action_dim, self.encoder.out_dim * config.frames)
+        embed_dim = self.encoder.out_dim * config.frames
+        self.rssm = RSSM(config.rssm, config.action_dim, embed_dim)
+        # A training target only (the ``dense`` recipe): linear, so that what it reads must be
+        # plainly present in the embedding the posterior head reads.
+        self.state_head = nn.Linear(embed_dim, config.state_dim) if config.state_dim else None
+
+    def embed(self, image: torch.Tensor, is_first: torch.Tensor) -> torch.Tensor:
+        """What the posterior reads along windows: image uint8 [B, T, H, W, 3], is_first
+        [B, T] -> [B, T, frames * E] (see :func:`stack_frames`)."""
+        return stack_frames(self.encoder(image), is_first, self.config.frames)
 
     def observe(self, image: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
                 uniform: torch.Tensor | None = None, read: str = "sample"
@@ -32,8 +41,14 @@ class Student(nn.Module):
         """Filter windows of images: image uint8 [B, T, H, W, 3], action [B, T, A],
         is_first [B, T] -> (posterior, prior) states {k: [B, T, ...]}; ``read`` as in
         :meth:`~twist_models.rssm.RSSM.post_step`."""
-        embed = stack_frames(self.encoder(image), is_first, self.config.frames)
-        return self.rssm.observe(embed, action, is_first, uniform=uniform, read=read)
+        return self.rssm.observe(self.embed(image, is_first), action, is_first,
+                                 uniform=uniform, read=read)
+
+    def read_state(self, embed: torch.Tensor) -> torch.Tensor:
+        """The state head's read-out: embed [..., frames * E] -> [..., state_dim]."""
+        if self.state_head is None:
+            raise ConfigError("this student has no state head (StudentConfig.state_dim is 0)")
+        return self.state_head(embed)
 
 
 def stack_frames(embed: torch.Tensor, is_first: torch.Tensor, frames: int) -> torch.Tensor:

@@ -1,0 +1,241 @@
+"""Distillation recipes: the per-frame terms of the ``dense`` recipe against hand computations,
+the teacher's targets against its own filter and finite differences, gradients that reach the
+student's encoder and never the teacher, and the recipe's name through config, run folder,
+agent bundle and CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from twist_data.errors import ConfigError
+from twist_data.reader import open_dataset
+from twist_data.synth import SynthConfig, write_synthetic_dataset
+from twist_models.agent import Agent
+from twist_models.config import student_preset, teacher_preset
+from twist_models.distill import (
+    RECIPES,
+    Distillation,
+    distil,
+    distil_preset,
+    load_student,
+    stored_config,
+)
+from twist_models.frame_targets import (
+    FrameBatches,
+    actor_sensitivity,
+    frame_agreement,
+    frame_terms,
+    teacher_targets,
+)
+from twist_models.losses import frame_posterior_loss, weighted_state_loss
+from twist_models.student import Student
+from twist_models.teacher import Teacher, save_teacher
+
+DATA = SynthConfig(episodes=8, steps=30, views=2, image_size=64, seed=5, length_jitter=6)
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Teacher]:
+    """(dataset, teacher checkpoint, the teacher): synthetic episodes of varying length and a
+    small random-weights teacher."""
+    root = tmp_path_factory.mktemp("recipes")
+    dataset = write_synthetic_dataset(root / "ds", DATA)
+    torch.manual_seed(3)
+    teacher = Teacher(teacher_preset("tiny", 5, 1)).eval()
+    return dataset, save_teacher(root / "teacher.pt", teacher), teacher
+
+
+def _log_softmax(x: np.ndarray) -> np.ndarray:
+    x = x - x.max(-1, keepdims=True)
+    return x - np.log(np.exp(x).sum(-1, keepdims=True))
+
+
+def test_frame_posterior_loss_is_the_mean_kl_summed_over_latents() -> None:
+    g = torch.Generator().manual_seed(0)
+    student, teacher = torch.randn(3, 4, 5, 6, generator=g), torch.randn(3, 4, 5, 6, generator=g)
+    lp, lq = _log_softmax(student.double().numpy()), _log_softmax(teacher.double().numpy())
+    expected = (np.exp(lp) * (lp - lq)).sum((-2, -1)).mean()
+    assert float(frame_posterior_loss(student, teacher)) == pytest.approx(expected, rel=1e-5)
+    assert float(frame_posterior_loss(teacher, teacher)) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_weighted_state_loss_by_hand() -> None:
+    prediction = torch.tensor([[1.0, 2.0], [0.0, -1.0]])
+    state = torch.tensor([[0.0, 0.0], [1.0, 1.0]])
+    weight = torch.tensor([[2.0, 0.5], [0.0, 3.0]])
+    # Row 0: 2 * 1 + 0.5 * 4 = 4; row 1: 0 * 1 + 3 * 4 = 12; mean 8.
+    assert float(weighted_state_loss(prediction, state, weight)) == pytest.approx(8.0)
+    prediction.requires_grad_(True)
+    weighted_state_loss(prediction, state, weight).backward()
+    # d/dp of mean_rows sum_i w (p - s)^2 = w (p - s) (2 / 2 rows)
+    assert torch.allclose(prediction.grad, weight * (prediction.detach() - state))
+
+
+def test_actor_sensitivity_matches_finite_differences(inputs: tuple[Path, Path, Teacher]) -> None:
+    teacher = inputs[2]
+    g = torch.Generator().manual_seed(1)
+    deter = torch.randn(6, teacher.world_model.rssm.config.deter, generator=g, dtype=torch.float64)
+    state = torch.randn(6, 5, generator=g, dtype=torch.float64)
+    teacher64 = Teacher(teacher.config).double()
+    teacher64.load_state_dict(teacher.state_dict())
+    weight = actor_sensitivity(teacher64, deter, state)
+
+    def action(s: torch.Tensor) -> torch.Tensor:
+        wm = teacher64.world_model
+        logits = wm.rssm.posterior_logits(deter, wm.encoder(s))
+        feature = torch.cat([deter, torch.softmax(logits, -1).flatten(-2)], -1)
+        return teacher64.actor_critic.actor(feature).mode
+
+    eps, expected = 1e-6, torch.zeros_like(state)
+    with torch.no_grad():
+        for i in range(5):
+            step = torch.zeros_like(state)
+            step[:, i] = eps
+            expected[:, i] = (((action(state + step) - action(state - step)) / (2 * eps)) ** 2).sum(-1)
+    assert torch.allclose(weight, expected, rtol=1e-5, atol=1e-10)
+    assert expected.abs().sum() > 0  # the check is not vacuous
+
+
+def test_teacher_targets_follow_each_episode_from_its_start(
+        inputs: tuple[Path, Path, Teacher]) -> None:
+    dataset, _, teacher = inputs
+    data = open_dataset(dataset)
+    episodes = np.array([0, 2, 3, 5])
+    targets = teacher_targets(teacher, data, episodes, read="mean", chunk=3)
+    wm = teacher.world_model
+    row = 0
+    for e in episodes.tolist():
+        start, end = int(data.episode_starts[e]), int(data.episode_ends[e])
+        state = torch.as_tensor(data.column("state")[start:end])[None]
+        action = torch.as_tensor(data.column("action")[start:end])[None]
+        is_first = torch.zeros(1, end - start, dtype=torch.bool)
+        is_first[0, 0] = True
+        with torch.no_grad():
+            post, _ = wm.rssm.observe(wm.embed(state), action, is_first, read="mean")
+        n = end - start
+        assert np.array_equal(targets.steps[row:row + n], np.arange(start, end))
+        assert np.all(targets.episode_start[row:row + n] == start)
+        assert torch.allclose(targets.deter[row:row + n], post["deter"][0], atol=1e-5)
+        row += n
+    assert row == len(targets)
+    assert float(targets.sensitivity.mean()) == pytest.approx(1.0, rel=1e-5)
+    raw = actor_sensitivity(teacher, targets.deter, targets.state)
+    assert torch.allclose(targets.sensitivity * targets.scale, raw, rtol=1e-4, atol=1e-12)
+
+
+def test_frame_batches_stack_the_steps_before_within_the_episode(
+        inputs: tuple[Path, Path, Teacher]) -> None:
+    dataset, _, teacher = inputs
+    data = open_dataset(dataset)
+    targets = teacher_targets(teacher, data, np.arange(data.n_episodes), read="mean")
+    batches = FrameBatches(data, targets, batch_size=64, frames=3, view=1, seed=0)
+    batch = batches.batch()
+    assert batch["image"].shape == (64, 3, 64, 64, 3)
+    # Recover each row from its state, then check the frames against the reader directly.
+    states = targets.state.numpy()
+    checked_start = 0
+    for i in range(64):
+        row = int(np.flatnonzero((states == batch["state"][i].numpy()).all(1))[0])
+        step, first = int(targets.steps[row]), int(targets.episode_start[row])
+        assert torch.equal(batch["deter"][i], targets.deter[row])
+        for j in range(3):
+            expected = np.empty((1, *data.spec.image_shape), np.uint8)
+            data.read_frames(np.array([max(step - j, first)]), np.array([1]), expected)
+            assert np.array_equal(batch["image"][i, j].numpy(), expected[0])
+        checked_start += step - first < 2
+    assert checked_start > 0  # some rows did reach back past their episode's start
+
+
+def test_gradients_reach_the_encoder_and_never_the_teacher(
+        inputs: tuple[Path, Path, Teacher]) -> None:
+    dataset, _, teacher = inputs
+    data = open_dataset(dataset)
+    config = distil_preset("tiny", "dense")
+    student = Student(student_preset("tiny", teacher.config, 64, norm="layer", state_head=True))
+    targets = teacher_targets(teacher, data, np.arange(data.n_episodes))
+    # First stage: single frames.
+    batch = FrameBatches(data, targets, batch_size=8, seed=1).batch()
+    embed = student.encoder(batch["image"]).flatten(1)
+    terms = frame_terms(student, teacher, embed, batch["deter"], batch["state"],
+                        batch["sensitivity"])
+    (terms["frame_post_kl"] + terms["state"]).backward()
+    assert student.encoder.net[0].weight.grad.abs().sum() > 0
+    assert student.state_head.weight.grad.abs().sum() > 0
+    assert all(p.grad is None for p in teacher.parameters())
+    # Second stage: the terms beside Eq. 3/4 on windows.
+    student.zero_grad(set_to_none=True)
+    from twist_data.sampler import WindowSampler
+
+    windows = WindowSampler(data, config.sampler("all", 0)).batch()
+    objective = Distillation(student, teacher, config, targets.scale)
+    loss, terms = objective({k: torch.as_tensor(windows[k]) for k in
+                             ("image", "state", "action", "is_first")})
+    assert {"frame_post_kl", "state", "h", "post_kl"} <= set(terms)
+    loss.backward()
+    assert student.encoder.net[0].weight.grad.abs().sum() > 0
+    assert all(p.grad is None for p in teacher.parameters())
+
+
+def test_frame_agreement_is_perfect_for_a_student_reading_the_teachers_posterior(
+        inputs: tuple[Path, Path, Teacher]) -> None:
+    teacher = inputs[2]
+    wm = teacher.world_model
+    g = torch.Generator().manual_seed(2)
+    deter = torch.randn(40, wm.rssm.config.deter, generator=g)
+    state = torch.randn(40, 5, generator=g)
+    # A "student" whose posterior head is the teacher's and whose embedding is the state's.
+    student = Student(student_preset("tiny", teacher.config, 64))
+    student.rssm.obs_out = wm.rssm.obs_out
+    with torch.no_grad():
+        same = frame_agreement(student, teacher, wm.encoder(state), deter, state)
+        other = frame_agreement(student, teacher, wm.encoder(state.flip(0)), deter, state)
+    assert same["frame_action_rmse"] == pytest.approx(0.0, abs=1e-6)
+    assert same["frame_action_corr"] == pytest.approx(1.0, abs=1e-5)
+    assert other["frame_action_rmse"] > 1e-4
+
+
+def test_the_recipe_travels_with_the_run_and_the_bundle(
+        inputs: tuple[Path, Path, Teacher], tmp_path: Path) -> None:
+    dataset, teacher_path, _ = inputs
+    config = distil_preset("tiny", "dense", frame_steps=4, frame_eval_every=2)
+    assert (config.frame_post_weight, config.state_weight) == (1.0, 1.0)
+    summary = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
+    assert stored_config(tmp_path / "run") == config
+    assert stored_config(tmp_path / "run").recipe == "dense"
+    student, extra = load_student(summary.student)
+    assert student.state_head is not None and extra["distil"]["recipe"] == "dense"
+    agent = Agent.load(summary.agent)
+    assert agent.info["recipe"] == "dense" and agent.info["frame_updates"] == 4
+    assert agent.student.state_head is None  # a training target only
+    frames = (tmp_path / "run" / "frame-metrics.csv").read_text().splitlines()
+    assert [line.split(",")[0] for line in frames[1:]] == ["2", "4"]
+    # The paper's recipe adds nothing: no head, no first stage.
+    paper = distil_preset("tiny")
+    assert paper.recipe == "paper" and not paper.frame_terms and paper.frame_steps == 0
+    assert set(RECIPES) >= {"paper", "dense"}
+
+
+def test_a_frame_stage_without_frame_terms_is_refused() -> None:
+    with pytest.raises(ConfigError, match="frame_steps=5"):
+        dataclasses.replace(distil_preset("tiny"), frame_steps=5)
+
+
+def test_an_unknown_recipe_is_refused_in_one_line(inputs: tuple[Path, Path, Teacher],
+                                                  tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="unknown recipe 'fast'; valid recipes are: paper"):
+        distil_preset("quick", "fast")
+    result = subprocess.run(
+        [sys.executable, "-m", "twist_cli.distil", "--dataset", str(inputs[0]), "--out",
+         str(tmp_path / "run"), "--preset", "tiny", "--recipe", "fast"],
+        capture_output=True, text=True)
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "unknown recipe 'fast'" in lines[0], result.stderr
+    assert not (tmp_path / "run").exists()
