@@ -1,4 +1,4 @@
-"""How well can a CNN read the privileged state from D's randomised images? (issue 7 diagnosis)
+"""How well can a CNN read the privileged state from D's randomised images?
 
 A student acts well only if its encoder recovers what the teacher's actor needs (on cartpole:
 the pole's angle) from one randomised 64x64 image. This probe trains, on D's training
@@ -22,6 +22,13 @@ frames with state component I in [LOW, HIGH]. ``1:0.985:1`` selects cartpole's p
 10° of upright (cosine at least 0.985), where the teacher's actor needs the sine to ~0.035.
 For that set the probe reports the RMSE in the state's units beside ``near_std``, the RMSE
 of predicting the set's own mean.
+``--teacher CKPT`` weights what the probe learns and scores by what the teacher's actor
+needs: each step's component i counts in proportion to the actor's squared sensitivity to it
+there (:func:`twist_models.frame_targets.actor_sensitivity`, at the teacher's own h), not to
+D's whole-range spread, under which a near-upright pole's errors barely weigh. The probe
+then also reports ``action_rmse``: the first-order error of the teacher's action that each
+encoder's read-out errors would cause on the held-out frames, sqrt(mean_t sum_i w_ti e_ti^2),
+beside ``action_rmse_of_mean`` (predicting the training frames' mean state).
 ``--every N`` prints a line every N updates of the supervised CNN (its learning curve);
 ``--supervised-only`` skips the other encoders; ``--norm layer`` probes the layer-normalised
 CNN (``--set encoder_norm=layer`` in ``twist-distil``).
@@ -45,7 +52,9 @@ from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.agent import Agent
 from twist_models.config import CNN_NORMS, PRESETS, CNNConfig
+from twist_models.frame_targets import teacher_targets
 from twist_models.networks import ImageEncoder
+from twist_models.teacher import load_teacher
 
 #: Held-out images [n, H, W, 3] and their normalised states [n, S].
 TestSet = tuple[torch.Tensor, torch.Tensor]
@@ -58,22 +67,29 @@ def frames(data: MatchingDataset, steps: np.ndarray, rng: np.random.Generator) -
 
 
 def held_out_scores(encoder: nn.Module, head: nn.Module, tests: dict[str, TestSet],
-                    scale: torch.Tensor) -> dict[str, list[float]]:
-    """R² per component on each test set, and for ``near`` the RMSE in the state's units."""
-    scores = {}
+                    scale: torch.Tensor, sensitivity: dict[str, torch.Tensor] | None = None
+                    ) -> dict[str, list[float] | float]:
+    """R² per component on each test set, for ``near`` the RMSE in the state's units, and with
+    ``sensitivity`` (raw, per test set [n, S]) the first-order action RMSE."""
+    scores: dict[str, list[float] | float] = {}
     with torch.no_grad():
         for name, (images, truth) in tests.items():
-            error = ((head(encoder(images)) - truth) ** 2).mean(0)
+            squared = (head(encoder(images)) - truth) ** 2
+            error = squared.mean(0)
             scores[f"{name}_r2" if name != "all" else "r2"] = [
                 round(float(v), 3) for v in 1.0 - error / truth.var(0)]
             if name == "near":
                 scores["near_rmse"] = [round(float(v), 3) for v in error.sqrt() * scale]
+            if sensitivity is not None:
+                action = (sensitivity[name] * squared * scale**2).sum(1).mean().sqrt()
+                scores[f"{name}_action_rmse"] = round(float(action), 4)
     return scores
 
 
 def probe(encoder: nn.Module, train_encoder: bool, data: MatchingDataset, target: torch.Tensor,
           train: np.ndarray, tests: dict[str, TestSet], scale: torch.Tensor,
-          args: argparse.Namespace, name: str) -> dict[str, list[float]]:
+          args: argparse.Namespace, name: str, weight: torch.Tensor | None = None,
+          sensitivity: dict[str, torch.Tensor] | None = None) -> dict:
     """Train a linear head (and the encoder when ``train_encoder``) -> held-out scores; with
     ``--every`` the supervised CNN also prints its scores along the way."""
     rng = np.random.default_rng(args.seed)
@@ -83,14 +99,31 @@ def probe(encoder: nn.Module, train_encoder: bool, data: MatchingDataset, target
     optimiser = torch.optim.Adam(params, lr=args.lr)
     for update in range(1, args.steps + 1):
         steps = rng.choice(train, args.batch)
-        loss = ((head(encoder(frames(data, steps, rng))) - target[steps]) ** 2).mean()
+        squared = (head(encoder(frames(data, steps, rng))) - target[steps]) ** 2
+        loss = (squared * weight[steps]).sum(1).mean() if weight is not None else squared.mean()
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
         if train_encoder and args.every and update % args.every == 0 and update < args.steps:
             print(json.dumps({"encoder": name, "updates": update,
-                              **held_out_scores(encoder, head, tests, scale)}), flush=True)
-    return held_out_scores(encoder, head, tests, scale)
+                              **held_out_scores(encoder, head, tests, scale, sensitivity)}),
+                  flush=True)
+    return held_out_scores(encoder, head, tests, scale, sensitivity)
+
+
+def actor_weights(teacher_path: str, data: MatchingDataset, scale: torch.Tensor,
+                  tests: dict[str, np.ndarray], train: np.ndarray) -> dict:
+    """The teacher actor's sensitivity at every step of D: ``weight`` [N, S] for training (in
+    standardised units, mean 1 over the training steps) and ``sensitivity`` {test set: raw
+    [n, S]} for scoring."""
+    teacher, _ = load_teacher(teacher_path, data.spec.state_dim, data.spec.action_dim)
+    targets = teacher_targets(teacher.eval(), data, np.arange(data.n_episodes), read="mean")
+    raw = torch.empty(data.n_steps, data.spec.state_dim)
+    raw[torch.as_tensor(targets.steps)] = targets.sensitivity * targets.scale
+    weight = raw * scale**2
+    weight = weight / weight[torch.as_tensor(train)].mean()
+    return {"weight": weight,
+            "sensitivity": {name: raw[torch.as_tensor(steps)] for name, steps in tests.items()}}
 
 
 def component_range(spec: str, states: np.ndarray) -> np.ndarray:
@@ -116,6 +149,7 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=0, help="learning-curve line every N updates")
     parser.add_argument("--supervised-only", action="store_true")
     parser.add_argument("--norm", choices=CNN_NORMS, default="none")
+    parser.add_argument("--teacher", help="weight components by this teacher actor's sensitivity")
     args = parser.parse_args()
     torch.manual_seed(args.seed)
     data = open_dataset(args.dataset)
@@ -130,11 +164,13 @@ def main() -> None:
     if args.near:
         subsets["near"] = np.flatnonzero(held & kept & component_range(args.near, states))
     tests: dict[str, TestSet] = {}
+    tests_steps: dict[str, np.ndarray] = {}
     for name, steps in subsets.items():
         if steps.size < 2:
             raise SystemExit(f"only {steps.size} held-out frames in the {name!r} set")
         chosen = np.sort(rng.choice(steps, min(args.test_frames, steps.size), replace=False))
         tests[name] = (frames(data, chosen, rng), target[chosen])
+        tests_steps[name] = chosen
     cnn = dataclasses.replace(PRESETS[args.preset].get("cnn", CNNConfig()),
                               image_size=data.spec.image_height, norm=args.norm)
     result: dict = {"dataset": args.dataset, "preset": args.preset, "norm": args.norm,
@@ -146,15 +182,23 @@ def main() -> None:
         result["near_frames"] = int(tests["near"][0].shape[0])
         spread = tests["near"][1].std(0, unbiased=False) * torch_scale
         result["near_std"] = [round(float(v), 3) for v in spread]
+    weights: dict = {}
+    if args.teacher:
+        weights = actor_weights(args.teacher, data, torch_scale, tests_steps, train)
+        mean_error = {name: (target[steps] - target[train].mean(0)) ** 2
+                      for name, steps in tests_steps.items()}
+        result["action_rmse_of_mean"] = {
+            name: round(float((weights["sensitivity"][name] * e * torch_scale**2).sum(1).mean()
+                              .sqrt()), 4) for name, e in mean_error.items()}
     if not args.supervised_only:
         result["random_cnn"] = probe(ImageEncoder(cnn), False, data, target, train, tests,
-                                     torch_scale, args, "random_cnn")
+                                     torch_scale, args, "random_cnn", **weights)
     result["supervised_cnn"] = probe(ImageEncoder(cnn), True, data, target, train, tests,
-                                     torch_scale, args, "supervised_cnn")
+                                     torch_scale, args, "supervised_cnn", **weights)
     if args.agent and not args.supervised_only:
         encoder = Agent.load(args.agent).student.encoder
         result["student"] = probe(encoder, False, data, target, train, tests, torch_scale,
-                                  args, "student")
+                                  args, "student", **weights)
     print(json.dumps(result))
 
 

@@ -168,6 +168,18 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
     assert stored("twist-no-noise")["distil"]["action_noise"] == 0.0
     assert stored("twist")["distil"]["action_weight"] == 0.0
     assert stored("twist-action")["distil"]["action_weight"] > 0.0
+    assert stored("twist")["distil"]["recipe"] == "paper"
+    dense = stored("twist-dense")["distil"]
+    assert dense["recipe"] == "dense" and dense["frame_steps"] > 0
+    assert dense["state_weight"] > 0 and dense["frame_post_weight"] > 0
+    for name, field, off in (("twist-dense-no-stage", "frame_steps", 0),
+                             ("twist-dense-no-state", "state_weight", 0.0),
+                             ("twist-dense-no-frame-kl", "frame_post_weight", 0.0),
+                             ("twist-dense-no-norm", "encoder_norm", "none")):
+        ablated = stored(name)["distil"]
+        assert ablated[field] == off and ablated["recipe"] == "dense"
+        assert {k: v for k, v in ablated.items() if k != field} == {
+            k: v for k, v in dense.items() if k != field}
     student_steps = stored("twist")["distil"]["steps"]
     for name, kind in (("dreamer-dr", "dreamer"), ("dreamer-no-dr", "dreamer"),
                        ("state-recon", "state-recon")):

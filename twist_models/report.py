@@ -44,7 +44,7 @@ from twist_models.collect import (
 )
 from twist_models.config import require_positive
 from twist_models.curves import figure
-from twist_models.distill import DISTIL_PRESETS, distil, distil_preset
+from twist_models.distill import DISTIL_PRESETS, DistilConfig, distil, distil_preset
 from twist_models.evaluation import (
     REFERENCE_AGENTS,
     EvalConfig,
@@ -60,6 +60,11 @@ log = logging.getLogger(__name__)
 AGENTS: dict[str, str] = {
     "oracle": "Oracle (teacher on states)",
     "twist": "TWIST",
+    "twist-dense": "TWIST, dense recipe (not in the paper)",
+    "twist-dense-no-stage": "dense recipe w/o its single-frame stage",
+    "twist-dense-no-state": "dense recipe w/o the state read-out",
+    "twist-dense-no-frame-kl": "dense recipe w/o the per-frame posterior",
+    "twist-dense-no-norm": "dense recipe w/o the layer-normalised CNN",
     "twist-scratch": "TWIST, student RSSM from scratch (as the paper)",
     "twist-no-imagined": "TWIST w/o imagined distillation",
     "twist-no-noise": "TWIST w/o action noise",
@@ -69,15 +74,21 @@ AGENTS: dict[str, str] = {
     "state-recon": "State Recon",
     "zero": "Zero actions (the floor)",
 }
-#: How each student column's distillation differs from TWIST's (``twist``): the paper's
-#: from-scratch start, its two ablations, and action matching at the weight measured to help
-#: at CPU scale (README, "Learning results").
-STUDENT_VARIANTS: dict[str, dict[str, Any]] = {
-    "twist": {},
-    "twist-scratch": {"copy_dynamics": False},
-    "twist-no-imagined": {"imagined": False},
-    "twist-no-noise": {"action_noise": 0.0},
-    "twist-action": {"action_weight": 10.0},
+#: Each student column's distillation: a recipe (``twist_models.distill.RECIPES``) and what it
+#: changes. The paper's recipe with its from-scratch start and its two ablations, action
+#: matching at the weight measured to help at CPU scale, and the ``dense`` recipe with each
+#: of its parts removed in turn (README, "Recipes").
+STUDENT_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
+    "twist": ("paper", {}),
+    "twist-scratch": ("paper", {"copy_dynamics": False}),
+    "twist-no-imagined": ("paper", {"imagined": False}),
+    "twist-no-noise": ("paper", {"action_noise": 0.0}),
+    "twist-action": ("paper", {"action_weight": 10.0}),
+    "twist-dense": ("dense", {}),
+    "twist-dense-no-stage": ("dense", {"frame_steps": 0}),
+    "twist-dense-no-state": ("dense", {"state_weight": 0.0}),
+    "twist-dense-no-frame-kl": ("dense", {"frame_post_weight": 0.0}),
+    "twist-dense-no-norm": ("dense", {"encoder_norm": "none"}),
 }
 #: Table I of the paper (held-out backgrounds, 500K frames, paper-scale models on GPU): the
 #: values quoted in our issue tracker. Blank cells are values we have not transcribed.
@@ -176,6 +187,12 @@ class _Pipeline:
         self.dataset = root / "dataset"
         self.distil_config = distil_preset(config.preset, seed=seed, steps=config.updates)
 
+    def student_config(self, name: str) -> DistilConfig:
+        """The distillation config of student column ``name``."""
+        recipe, changes = STUDENT_VARIANTS[name]
+        return distil_preset(self.config.preset, recipe, seed=self.seed,
+                             steps=self.config.updates, **changes)
+
     def run(self) -> None:
         self._collect()
         agents = {"oracle": run_dir(self.dataset, "collect-000") / FINAL_TEACHER}
@@ -216,8 +233,8 @@ class _Pipeline:
         self._announce(f"training {AGENTS[name]}")
         resume = (folder / "config.json").exists()
         if name in STUDENT_VARIANTS:
-            config = dataclasses.replace(self.distil_config, **STUDENT_VARIANTS[name])
-            distil(self.dataset, folder, config, resume=resume, device=self.device)
+            distil(self.dataset, folder, self.student_config(name), resume=resume,
+                   device=self.device)
         else:
             kind = "state-recon" if name == "state-recon" else "dreamer"
             dataset = self._clean_dataset() if name == "dreamer-no-dr" else self.dataset
