@@ -14,6 +14,7 @@ import zarr
 from tests.test_writer import tree_snapshot
 from twist_data.errors import FormatVersionError, NotADatasetError, SchemaMismatchError
 from twist_data.reader import open_dataset
+from twist_data.schema import FORMAT_VERSION
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import verify_dataset
 
@@ -39,7 +40,7 @@ def test_newer_format_version_is_refused(fresh_dataset: Path) -> None:
     doc["attributes"]["twist"]["format_version"] = 99
     meta.write_text(json.dumps(doc))
     with pytest.raises(FormatVersionError, match="has format_version 99, but this library reads "
-                                                 "versions up to 1"):
+                                                 f"versions up to {FORMAT_VERSION}"):
         open_dataset(fresh_dataset)
 
 
@@ -59,7 +60,7 @@ def test_truncated_image_file_is_named(fresh_dataset: Path) -> None:
     assert len(report.problems) == 1
     problem = report.problems[0]
     assert problem.shard == shard.stem and problem.array == "data/image"
-    assert "unreadable" in problem.message
+    assert "corrupt index" in problem.message and "(episodes 0-2)" in problem.message
     sampler_reader = open_dataset(fresh_dataset).shards[1].frames
     with pytest.raises(Exception, match="corrupt index"):
         sampler_reader._file(0)

@@ -129,7 +129,8 @@ def dr_preset(name: str, backgrounds: str | os.PathLike[str] | None = None) -> D
 #: Per-step, per-view parameters written to ``data/dr/<name>``.
 VIEW_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("background", (), "int32",
-              "index into the background bank (spec.extra.dr.bank); -1 = dm_control's sky"),
+              "index into the background bank of the view's render block "
+              "(spec.extra.render[i].bank); -1 = dm_control's sky"),
     ParamSpec("background_offset", (2,), "int32",
               "top-left (row, column) of the crop of the background texture, texture pixels"),
     ParamSpec("colour", (len(COLOUR_GROUPS), 3), "float32",

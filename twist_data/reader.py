@@ -32,7 +32,13 @@ from twist_data.schema import (
     check_format,
     step_arrays,
 )
-from twist_data.storage import FrameReader, StorageLayout, frame_decoder
+from twist_data.storage import (
+    FrameCorruptError,
+    FrameReader,
+    StorageLayout,
+    frame_decoder,
+    reason,
+)
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +61,11 @@ class _ZarrFrameReader:
     def read_into(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
                   rows: np.ndarray) -> None:
         for row, t, v in zip(rows.tolist(), steps.tolist(), views.tolist(), strict=True):
-            out[row] = self.array[t, v]
+            try:
+                out[row] = self.array[t, v]
+            except Exception as exc:  # zarr and the codecs raise assorted types
+                raise FrameCorruptError(f"the frame of step {t} view {v} cannot be decoded "
+                                        f"({reason(exc)})", t) from None
 
     def close(self) -> None:
         pass
@@ -75,7 +85,7 @@ class ShardReader:
         block = check_format(self._group.attrs, str(self.path))
         self.format_version = int(block["format_version"])
         self.spec = DatasetSpec.from_json(block["spec"])
-        self.layout = StorageLayout(**block["layout"])
+        self.layout = StorageLayout.from_json(block["layout"])
         self.attrs = dict(block)
         commit = block["commit"]
         self.n_episodes = int(commit["n_episodes"])
@@ -107,7 +117,7 @@ class ShardReader:
                     f"shard {self.path}: {key} holds {arr.shape[0]} episodes, "
                     f"but {self.n_episodes} are committed"
                 )
-            table[key.removeprefix("meta/")] = arr[: self.n_episodes]
+            table[key.removeprefix("meta/")] = self._read_rows(key, 0, self.n_episodes)
         ends = table["episode_ends"]
         if self.n_episodes and (ends[-1] != self.n_steps or np.any(np.diff(ends) <= 0)
                                 or ends[0] <= 0):
@@ -116,6 +126,12 @@ class ShardReader:
                 f"({self.n_steps} steps)"
             )
         return table
+
+    @property
+    def policy_names(self) -> dict[int, str]:
+        """``meta/episode_policy`` code -> name, from the shard's own ``policy_codes`` table."""
+        return {int(code): name for name, code in self.attrs.get("policy_codes",
+                                                                    POLICY_CODES).items()}
 
     @property
     def episode_ends(self) -> np.ndarray:
@@ -150,9 +166,89 @@ class ShardReader:
             steps = np.repeat(np.arange(start, stop), k)
             views = np.tile(np.arange(k), stop - start)
             flat = out.reshape(-1, *arr.shape[2:])
-            self.frames.read_into(steps, views, flat, np.arange(flat.shape[0]))
+            self.read_frames(steps, views, flat, np.arange(flat.shape[0]))
             return out
-        return arr[start:stop]
+        return self._read_rows(f"data/{key}", start, stop)
+
+    def read_frames(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
+                    rows: np.ndarray) -> None:
+        """Decode frame (``steps[i]``, ``views[i]``) of this shard into ``out[rows[i]]``; a
+        frame that cannot be decoded raises DatasetCorruptError naming its episode."""
+        try:
+            self.frames.read_into(steps, views, out, rows)
+        except FrameCorruptError as exc:
+            raise DatasetCorruptError(
+                f"shard {self.name}, {self.where(exc.step)}, data/image: {exc}") from None
+
+    def where(self, step: int) -> str:
+        """``episode E (its step s)`` for step ``step`` of this shard."""
+        episode = int(np.searchsorted(self.episode_ends, step, side="right"))
+        if episode >= self.n_episodes:
+            return f"step {step} (beyond the committed episodes)"
+        return f"episode {episode} (its step {step - int(self.episode_starts[episode])})"
+
+    def rows_of(self, key: str, start: int, stop: int) -> str:
+        """Rows [start, stop) of array ``key`` in words: steps and their episodes, or episodes."""
+        if key.startswith("meta/"):
+            return f"episodes {start}-{stop - 1}"
+        ends = self._table["episode_ends"] if hasattr(self, "_table") else np.zeros(0)
+        first = int(np.searchsorted(ends, start, side="right"))
+        last = int(np.searchsorted(ends, stop - 1, side="right"))
+        if first >= ends.size:
+            return f"steps {start}-{stop - 1}"
+        return f"steps {start}-{stop - 1} (episodes {first}-{min(last, ends.size - 1)})"
+
+    def missing_chunks(self, key: str, start: int, stop: int) -> list[tuple[int, int]]:
+        """Row ranges [a, b) within [start, stop) of array ``key`` whose chunk file is absent.
+        zarr reads a missing chunk as its fill value (zeros), so only this check finds one.
+        Format 1 writers skipped chunks of zeros, so there only image shard files count."""
+        arr = self.array(key)
+        if start >= stop or not (self.layout.checksums or key == "data/image"):
+            return []
+        rows = int(arr.shards[0] if arr.shards else arr.chunks[0])  # images: one file per shard
+        missing = []
+        for c in range(start // rows, (stop - 1) // rows + 1):
+            name = arr.metadata.encode_chunk_key((c,) + (0,) * (arr.ndim - 1))
+            if not (self.path / key / name).is_file():
+                missing.append((max(start, c * rows), min(stop, (c + 1) * rows)))
+        return missing
+
+    def damaged_chunks(self, key: str, start: int, stop: int
+                       ) -> list[tuple[int, int, str]]:
+        """Row ranges [a, b) of array ``key`` within [start, stop) whose chunk is missing or
+        cannot be decoded, each with the reason; every chunk is read."""
+        arr = self.array(key)
+        if start >= stop:
+            return []
+        damaged = [(a, b, "its chunk file is missing") for a, b in
+                   self.missing_chunks(key, start, stop)]
+        missing = {a for a, _, _ in damaged}
+        rows = int(arr.shards[0] if arr.shards else arr.chunks[0])
+        for c in range(start // rows, (stop - 1) // rows + 1):
+            a, b = max(start, c * rows), min(stop, (c + 1) * rows)
+            if a in missing:
+                continue
+            try:
+                arr[a:b]
+            except Exception as exc:  # zarr and the codecs raise assorted types
+                damaged.append((a, b, f"cannot be decoded ({reason(exc)})"))
+        return sorted(damaged)
+
+    def _read_rows(self, key: str, start: int, stop: int) -> np.ndarray:
+        """Rows [start, stop) of a low-dimensional array, or DatasetCorruptError naming the
+        first damaged chunk's rows (never fill values in place of a missing chunk)."""
+        arr = self.array(key)
+        try:
+            if self.missing_chunks(key, start, stop):
+                raise LookupError("missing chunk")
+            return arr[start:stop]
+        except Exception:  # zarr and the codecs raise assorted types
+            damaged = self.damaged_chunks(key, start, stop)
+            if not damaged:
+                raise
+            a, b, why = damaged[0]
+            raise DatasetCorruptError(
+                f"shard {self.name}, {self.rows_of(key, a, b)}, {key}: {why}") from None
 
     @property
     def frames(self) -> FrameReader | _ZarrFrameReader:
@@ -315,11 +411,11 @@ class MatchingDataset:
             )
         loc = self.locate(steps)
         if len(self.shards) == 1:
-            self.shards[0].frames.read_into(loc.step, views, out, rows)
+            self.shards[0].read_frames(loc.step, views, out, rows)
             return
         for s in np.unique(loc.shard).tolist():
             sel = loc.shard == s
-            self.shards[s].frames.read_into(loc.step[sel], views[sel], out, rows[sel])
+            self.shards[s].read_frames(loc.step[sel], views[sel], out, rows[sel])
 
     def episode(self, index: int) -> Episode:
         """Global episode ``index`` (episodes numbered over shards in shard-name order)."""
@@ -330,10 +426,9 @@ class MatchingDataset:
         """Provenance of global episode ``index`` as the writer received it."""
         shard, local = self.episode_location(index)
         table = self.shards[shard]._table
-        codes = {v: k for k, v in POLICY_CODES.items()}
         return EpisodeInfo(
             seed=int(table["episode_seed"][local]),
-            policy=codes[int(table["episode_policy"][local])],
+            policy=self.shards[shard].policy_names[int(table["episode_policy"][local])],
             teacher_step=int(table["episode_teacher_step"][local]),
             env_step=int(table["episode_env_step"][local]),
             dr={p.name: table[f"dr/{p.name}"][local] for p in self.spec.episode_dr_params},
@@ -357,9 +452,9 @@ class MatchingDataset:
 
     def episodes(self) -> pd.DataFrame:
         """One row per committed episode: shard, index, start, length, return and provenance."""
-        codes = {v: k for k, v in POLICY_CODES.items()}
         frames = []
         for shard in self.shards:
+            codes = shard.policy_names
             t = shard._table
             frame = pd.DataFrame({
                 "shard": shard.name,

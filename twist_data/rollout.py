@@ -49,13 +49,15 @@ def random_policy(action_dim: int, seed: int = 0) -> Policy:
 
 def library_versions() -> dict[str, str]:
     """Versions that determine simulation and rendering results, for provenance."""
-    import dm_control
+    import importlib.metadata
+
     import mujoco
 
     import twist_data
 
+    # dm_control defines no __version__; its distribution metadata holds the version.
     return {"twist": twist_data.__version__, "mujoco": mujoco.__version__,
-            "dm_control": getattr(dm_control, "__version__", "unknown")}
+            "dm_control": importlib.metadata.version("dm-control")}
 
 
 def simulated_spec(env: TaskEnv, renderer: FrameRenderer, extra: dict[str, Any] | None = None) -> DatasetSpec:

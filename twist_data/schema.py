@@ -17,7 +17,7 @@ import numpy as np
 from twist_data.errors import FormatVersionError, InvalidEpisodeError, NotADatasetError
 
 FORMAT_NAME = "twist.matching-dataset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 ATTRS_KEY = "twist"
 IMAGE_CHANNELS = 3
 

@@ -29,7 +29,7 @@ import numpy as np
 import zarr
 from numcodecs import blosc as _blosc
 from numcodecs import zstd as _zstd
-from zarr.codecs import BloscCodec, ShardingCodec, ZstdCodec
+from zarr.codecs import BloscCodec, Crc32cCodec, ShardingCodec, ZstdCodec
 
 from twist_data.errors import DatasetCorruptError
 
@@ -52,6 +52,10 @@ class StorageLayout:
     """zstd level of every other array."""
     episodes_per_chunk: int = 4096
     """Chunk length of the per-episode arrays under ``meta/``."""
+    checksums: bool = True
+    """A CRC32C after every chunk of every array and after every image frame (zarr's
+    ``crc32c`` codec, which any zarr v3 reader checks), so that a flipped byte is found where
+    it is read. Shards of format version 1 have none."""
 
     def __post_init__(self) -> None:
         if self.steps_per_file < 1:
@@ -66,14 +70,25 @@ class StorageLayout:
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> StorageLayout:
+        """A stored layout; one written before checksums existed has none."""
+        return cls(**{"checksums": False, **data})
+
+
+def _checksum(layout: StorageLayout) -> list[Any]:
+    return [Crc32cCodec()] if layout.checksums else []
+
 
 def _image_compressors(layout: StorageLayout) -> list[Any]:
     if layout.image_codec == "blosc-lz4":
-        return [BloscCodec(cname="lz4", clevel=layout.image_level, shuffle="noshuffle",
-                           typesize=1)]
-    if layout.image_codec == "zstd":
-        return [ZstdCodec(level=layout.image_level)]
-    return []
+        compressors: list[Any] = [BloscCodec(cname="lz4", clevel=layout.image_level,
+                                             shuffle="noshuffle", typesize=1)]
+    elif layout.image_codec == "zstd":
+        compressors = [ZstdCodec(level=layout.image_level)]
+    else:
+        compressors = []
+    return compressors + _checksum(layout)
 
 
 def create_step_array(group: zarr.Group, name: str, dtype: str, trailing: tuple[int, ...],
@@ -90,7 +105,8 @@ def create_step_array(group: zarr.Group, name: str, dtype: str, trailing: tuple[
         )
     return group.create_array(
         name, shape=(0, *trailing), dtype=dtype, chunks=(spf, *trailing),
-        compressors=[ZstdCodec(level=layout.lowdim_level)], fill_value=0, config=config,
+        compressors=[ZstdCodec(level=layout.lowdim_level), *_checksum(layout)], fill_value=0,
+        config=config,
     )
 
 
@@ -99,7 +115,7 @@ def create_episode_array(group: zarr.Group, name: str, dtype: str, trailing: tup
     """Create an empty per-episode array ``[0, *trailing]``."""
     return group.create_array(
         name, shape=(0, *trailing), dtype=dtype, chunks=(layout.episodes_per_chunk, *trailing),
-        compressors=[ZstdCodec(level=layout.lowdim_level)], fill_value=0,
+        compressors=[ZstdCodec(level=layout.lowdim_level), *_checksum(layout)], fill_value=0,
         config={"write_empty_chunks": True},
     )
 
@@ -123,8 +139,9 @@ def _frame_codecs(array: zarr.Array) -> list[dict[str, Any]] | None:
     """The inner codecs of a sharded frame array, or None if its layout is not the known one.
 
     Known layout: a single ``sharding_indexed`` codec whose inner chunk is one frame
-    ``(1, 1, H, W, C)``, inner codecs ``bytes`` + optional blosc/zstd, index ``bytes(little)``
-    + ``crc32c`` at the end, and the default ``/`` chunk-key encoding.
+    ``(1, 1, H, W, C)``, inner codecs ``bytes`` + optional blosc/zstd + optional ``crc32c``,
+    index ``bytes(little)`` + ``crc32c`` at the end, and the default ``/`` chunk-key
+    encoding.
     """
     meta = array.metadata
     codecs = getattr(meta, "codecs", ())
@@ -140,19 +157,40 @@ def _frame_codecs(array: zarr.Array) -> list[dict[str, Any]] | None:
     if meta.chunk_key_encoding.to_dict().get("configuration", {}).get("separator", "/") != "/":
         return None
     inner = [c if isinstance(c, dict) else c.to_dict() for c in sharding["codecs"]]
-    if [c["name"] for c in inner] not in (["bytes"], ["bytes", "blosc"], ["bytes", "zstd"]):
+    names = [c["name"] for c in inner]
+    if names[-1:] == ["crc32c"]:
+        names = names[:-1]
+    if names not in (["bytes"], ["bytes", "blosc"], ["bytes", "zstd"]):
         return None
     return inner
 
 
+class FrameChecksumError(ValueError):
+    """A frame's bytes do not match the CRC32C stored after them."""
+
+
+def _checked(decode: Decoder) -> Decoder:
+    def decode_checked(src: memoryview, dest: np.ndarray) -> None:
+        if len(src) < 4:
+            raise FrameChecksumError(f"{len(src)} bytes cannot hold a frame and its CRC32C")
+        stored = int.from_bytes(src[-4:], "little")
+        if google_crc32c.value(bytes(src[:-4])) != stored:
+            raise FrameChecksumError("CRC32C mismatch")
+        decode(src[:-4], dest)
+    return decode_checked
+
+
 def frame_decoder(array: zarr.Array) -> Decoder | None:
-    """The direct decoder of one frame of a sharded frame array; None if the layout is not the
-    known one (see :func:`_frame_codecs`)."""
+    """The direct decoder of one frame of a sharded frame array, which checks the frame's
+    CRC32C where the layout stores one; None if the layout is not the known one (see
+    :func:`_frame_codecs`)."""
     inner = _frame_codecs(array)
     if inner is None:
         return None
-    return {"bytes": _decode_raw, "blosc": _decode_blosc,
-            "zstd": _decode_zstd}[inner[-1]["name"]]
+    checksum = inner[-1]["name"] == "crc32c"
+    codec = inner[-2] if checksum else inner[-1]
+    decode = {"bytes": _decode_raw, "blosc": _decode_blosc, "zstd": _decode_zstd}[codec["name"]]
+    return _checked(decode) if checksum else decode
 
 
 Encoder = Callable[[np.ndarray], bytes]
@@ -166,7 +204,8 @@ def frame_encoder(array: zarr.Array) -> Encoder | None:
     inner = _frame_codecs(array)
     if inner is None:
         return None
-    codec = inner[-1]
+    checksum = inner[-1]["name"] == "crc32c"
+    codec = inner[-2] if checksum else inner[-1]
     settings = codec.get("configuration", {})
     if codec["name"] == "blosc":
         shuffle = settings.get("shuffle", "noshuffle")
@@ -174,12 +213,24 @@ def frame_encoder(array: zarr.Array) -> Encoder | None:
             return None
         cname = str(settings.get("cname", "lz4")).encode()
         clevel, blocksize = int(settings.get("clevel", 5)), int(settings.get("blocksize", 0))
-        return lambda frame: _blosc.compress(frame, cname, clevel, _SHUFFLES[shuffle],
-                                             blocksize, 1)
-    if codec["name"] == "zstd":
+
+        def encode(frame: np.ndarray) -> bytes:
+            return _blosc.compress(frame, cname, clevel, _SHUFFLES[shuffle], blocksize, 1)
+    elif codec["name"] == "zstd":
         level = int(settings.get("level", 0))
-        return lambda frame: _zstd.compress(frame, level)
-    return lambda frame: frame.tobytes()
+
+        def encode(frame: np.ndarray) -> bytes:
+            return _zstd.compress(frame, level)
+    else:
+        def encode(frame: np.ndarray) -> bytes:
+            return frame.tobytes()
+    if not checksum:
+        return encode
+
+    def encode_checked(frame: np.ndarray) -> bytes:
+        data = encode(frame)
+        return data + google_crc32c.value(data).to_bytes(4, "little")
+    return encode_checked
 
 
 def shard_file(array: zarr.Array, array_dir: Path, index: int) -> Path:
@@ -224,6 +275,23 @@ class FrameFile:
         self._mmap.close()
 
 
+class FrameCorruptError(DatasetCorruptError):
+    """A stored frame cannot be decoded; ``step`` is its step within the shard."""
+
+    def __init__(self, message: str, step: int) -> None:
+        super().__init__(message)
+        self.step = step
+
+
+def reason(exc: BaseException) -> str:
+    """A codec or zarr error as a short phrase: its type and first line (zarr's checksum
+    mismatch, which quotes both checksums' bytes, as ``CRC32C mismatch``)."""
+    text = str(exc).strip().splitlines()
+    if isinstance(exc, FrameChecksumError) or (text and "checksum do not match" in text[0]):
+        return "CRC32C mismatch"
+    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
+
+
 class FrameReader:
     """Decodes single frames ``[H, W, C]`` of one sharded image array straight from its files."""
 
@@ -253,17 +321,26 @@ class FrameReader:
         """Decode frame ``(steps[i], views[i])`` into ``out[rows[i]]``; out: [n, H, W, C]."""
         spf, k, decode = self.steps_per_file, self.views, self.decoder
         for row, t, v in zip(rows.tolist(), steps.tolist(), views.tolist(), strict=True):
-            f = self._file(t // spf)
+            try:
+                f = self._file(t // spf)
+            except FrameCorruptError:
+                raise
+            except DatasetCorruptError as exc:  # a missing, truncated or badly indexed file
+                raise FrameCorruptError(str(exc), t) from None
             j = (t % spf) * k + v
             off, nb = f.offsets[j], f.nbytes[j]
             if off == _EMPTY:
                 out[row] = 0
                 continue
             if off + nb > f.size:
-                raise DatasetCorruptError(
-                    f"image shard file {f.path}: frame of step {t} view {v} points past the end"
-                )
-            decode(f.view[off: off + nb], out[row])
+                raise FrameCorruptError(f"image shard file {f.path}: the frame of step {t} "
+                                        f"view {v} points past the end of the file", t)
+            try:
+                decode(f.view[off: off + nb], out[row])
+            except Exception as exc:  # blosc, zstd and the checksum raise assorted types
+                raise FrameCorruptError(f"image shard file {f.path}: the frame of step {t} "
+                                        f"view {v} cannot be decoded ({reason(exc)})", t
+                                        ) from None
 
     def close(self) -> None:
         for f in self._files.values():

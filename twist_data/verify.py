@@ -13,10 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import zarr
 
-from twist_data.errors import TwistError
+from twist_data.errors import DatasetCorruptError, TwistError
 from twist_data.reader import ShardReader, find_shards
 from twist_data.schema import EPISODE_COLUMNS, step_arrays
+from twist_data.storage import FrameFile, reason, shard_file
 
 log = logging.getLogger(__name__)
 
@@ -55,18 +57,60 @@ class VerifyReport:
         return not self.problems
 
 
-def _episodes_in(ends: np.ndarray, start: int, stop: int) -> list[int]:
-    """Indices of episodes overlapping steps [start, stop)."""
-    first = int(np.searchsorted(ends, start, side="right"))
-    last = int(np.searchsorted(ends, stop - 1, side="right"))
-    return list(range(first, min(last, ends.size - 1) + 1)) if ends.size else []
+def _shard_index_problem(arr: zarr.Array, folder: Path, index: int, inner: int) -> str | None:
+    """What is wrong with image shard file ``index``'s own index (size, CRC32C), if anything."""
+    try:
+        FrameFile(shard_file(arr, folder, index), inner).close()
+    except DatasetCorruptError as exc:
+        return str(exc).rsplit(" is ", 1)[-1].rsplit(" has ", 1)[-1]
+    return None
+
+
+def _verify_images(shard: ShardReader, problem: Callable[..., None],
+                   tick: Callable[[int], None]) -> None:
+    """Every committed frame, one image shard file at a time through zarr (which checks the
+    index's and, in format 2, each frame's CRC32C); a file that fails is read frame by frame
+    so that each damaged episode is named with its damaged steps."""
+    arr, n, views = shard.array("data/image"), shard.n_steps, shard.spec.views
+    missing = dict(shard.missing_chunks("data/image", 0, n))
+    per_file = int(arr.shards[0])
+    for a in range(0, n, per_file):
+        b = min(a + per_file, n)
+        if a in missing:
+            problem(f"{shard.rows_of('data/image', a, b)}: its shard file is missing",
+                    "data/image")
+            tick(b - a)
+            continue
+        try:
+            arr[a:b]
+        except Exception:  # zarr and the codecs raise assorted types
+            index_problem = _shard_index_problem(arr, shard.path / "data" / "image", a // per_file,
+                                                 per_file * views)
+            if index_problem:  # the whole file: its frames cannot even be located
+                problem(f"{shard.rows_of('data/image', a, b)}: {index_problem}", "data/image")
+                tick(b - a)
+                continue
+            bad: dict[int, list[tuple[int, str]]] = {}
+            for t in range(a, b):
+                for v in range(views):
+                    try:
+                        arr[t, v]
+                    except Exception as exc:
+                        episode = int(np.searchsorted(shard.episode_ends, t, side="right"))
+                        bad.setdefault(episode, []).append(
+                            (t - int(shard.episode_starts[episode]), reason(exc)))
+                        break
+            for episode, steps in bad.items():
+                first, last = steps[0][0], steps[-1][0]
+                problem(f"{len(steps)} step(s) between its steps {first} and {last} cannot be "
+                        f"decoded ({steps[0][1]})", "data/image", episode)
+        tick(b - a)
 
 
 def _verify_shard(shard: ShardReader, report: VerifyReport,
                   tick: Callable[[int], None]) -> None:
     name, n, ends = shard.name, shard.n_steps, shard.episode_ends
     starts = shard.episode_starts
-    spf = shard.layout.steps_per_file
 
     def problem(message: str, array: str | None = None, episode: int | None = None) -> None:
         report.problems.append(Problem(name, message, array, episode))
@@ -90,32 +134,26 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
             problem(f"holds {arr.shape[0]} rows but {committed} are committed (truncated)", key)
             continue
         if key.startswith("meta/"):
+            for a, b, why in shard.damaged_chunks(key, 0, committed):
+                problem(f"{shard.rows_of(key, a, b)}: {why}", key)
             continue
-        keep = key != "data/image"
-        parts = []
-        for a in range(0, n, spf):
-            b = min(a + spf, n)
-            try:
-                block = arr[a:b]
-            except Exception as exc:  # zarr/codec errors have many types
-                eps = _episodes_in(ends, a, b)
-                problem(f"steps {a}-{b - 1} (episodes {eps[0]}-{eps[-1]}) are unreadable: "
-                        f"{type(exc).__name__}: {exc}", key)
-                keep = False
-                break
-            if block.dtype.kind == "f":
-                bad = ~np.isfinite(block.reshape(block.shape[0], -1)).all(axis=1)
-                if bad.any():
-                    step = a + int(np.flatnonzero(bad)[0])
-                    ep = int(np.searchsorted(ends, step, side="right"))
-                    problem(f"contains NaN or inf (first at step {step - int(starts[ep])} of the "
-                            "episode)", key, ep)
-            if keep:
-                parts.append(block)
-            if key == "data/image":
-                tick(b - a)
-        if keep:
-            loaded[key] = np.concatenate(parts) if parts else arr[:0]
+        if key == "data/image":
+            _verify_images(shard, problem, tick)
+            continue
+        damaged = shard.damaged_chunks(key, 0, n)
+        for a, b, why in damaged:
+            problem(f"{shard.rows_of(key, a, b)}: {why}", key)
+        if damaged:
+            continue
+        block = arr[0:n]
+        if block.dtype.kind == "f":
+            bad = np.flatnonzero(~np.isfinite(block.reshape(block.shape[0], -1)).all(axis=1))
+            episodes = np.searchsorted(ends, bad, side="right")
+            for ep in np.unique(episodes):
+                first = int(bad[episodes == ep][0])
+                problem(f"contains NaN or inf (first at step {first - int(starts[ep])} of the "
+                        "episode)", key, int(ep))
+        loaded[key] = block
 
     flags = [loaded.get(f"data/{f}") for f in ("is_first", "is_last", "is_terminal", "discount",
                                                  "reward")]

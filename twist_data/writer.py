@@ -71,16 +71,21 @@ class ShardWriter:
         self._lock_fd = lock_fd
         block = dict(group.attrs[ATTRS_KEY])
         self.spec = DatasetSpec.from_json(block["spec"])
-        self.layout = StorageLayout(**block["layout"])
+        self.layout = StorageLayout.from_json(block["layout"])
         self._block = block
-        self._step_arrays = {a.path: group[a.path] for a in step_arrays(self.spec)}
+        # Every chunk is written, zeros too (zarr's runtime default skips a chunk equal to
+        # the fill value): in format 2 a missing chunk file can then only mean damage.
+        def opened(key: str) -> zarr.Array:
+            return group[key].with_config({"write_empty_chunks": True})
+
+        self._step_arrays = {a.path: opened(a.path) for a in step_arrays(self.spec)}
         images = self._step_arrays["data/image"]
         encoder = frame_encoder(images)
         self._frames = None if encoder is None else FrameWriter(
             images, path / "data" / "image", encoder, int(images.shards[0]))
-        self._episode_arrays = {f"meta/{c}": group[f"meta/{c}"] for c in EPISODE_COLUMNS}
+        self._episode_arrays = {f"meta/{c}": opened(f"meta/{c}") for c in EPISODE_COLUMNS}
         self._episode_arrays.update(
-            {f"meta/dr/{p.name}": group[f"meta/dr/{p.name}"] for p in self.spec.episode_dr_params}
+            {f"meta/dr/{p.name}": opened(f"meta/dr/{p.name}") for p in self.spec.episode_dr_params}
         )
         commit = block["commit"]
         self.n_episodes = int(commit["n_episodes"])

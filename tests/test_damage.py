@@ -1,0 +1,173 @@
+"""Damage that must never be read silently: each case is made on a synthetic dataset, found by
+``verify`` with the right episode, refused by every reader with DatasetCorruptError (never
+wrong data or fill values), while the undamaged episodes still read."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from twist_data.errors import DatasetCorruptError
+from twist_data.reader import open_dataset
+from twist_data.sampler import SamplerConfig, WindowSampler
+from twist_data.schema import FORMAT_VERSION
+from twist_data.storage import FrameFile, StorageLayout
+from twist_data.synth import SynthConfig, synthetic_episode, write_synthetic_dataset
+from twist_data.verify import verify_dataset
+
+# 5 episodes of 12 steps, 8 steps per file: data/state has 8 chunks, so a damaged chunk
+# names a range of two episodes at most.
+DATA = SynthConfig(episodes=5, steps=12, views=2, image_size=16, seed=7)
+LAYOUT = StorageLayout(steps_per_file=8)
+
+
+@pytest.fixture
+def dataset(tmp_path: Path) -> Path:
+    return write_synthetic_dataset(tmp_path / "ds", DATA, LAYOUT)
+
+
+def shard_of(dataset: Path) -> Path:
+    return next(dataset.glob("*.zarr"))
+
+
+def flip(path: Path, offset: int, count: int = 1) -> None:
+    data = bytearray(path.read_bytes())
+    for i in range(offset, offset + count):
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def frame_location(shard: Path, step: int, view: int) -> tuple[Path, int, int]:
+    """(file, offset, size) of a frame's encoded bytes, from the shard file's own index."""
+    per_file = LAYOUT.steps_per_file
+    path = shard / "data" / "image" / "c" / str(step // per_file) / "0" / "0" / "0" / "0"
+    frames = FrameFile(path, per_file * DATA.views)
+    j = (step % per_file) * DATA.views + view
+    offset, size = frames.offsets[j], frames.nbytes[j]
+    frames.close()
+    return path, offset, size
+
+
+def episodes_that_read(dataset: Path) -> list[int]:
+    data = open_dataset(dataset)
+    readable = []
+    for e in range(data.n_episodes):
+        try:
+            got = data.episode(e)
+        except DatasetCorruptError:
+            continue
+        expected, _ = synthetic_episode(DATA, e)
+        for key, value in expected.arrays().items():  # never wrong data
+            np.testing.assert_array_equal(got.arrays()[key], value, err_msg=key)
+        readable.append(e)
+    return readable
+
+
+def test_new_shards_carry_checksums(dataset: Path) -> None:
+    meta = zarr.open_group(shard_of(dataset), mode="r").attrs["twist"]
+    assert meta["format_version"] == FORMAT_VERSION == 2 and meta["layout"]["checksums"]
+    assert verify_dataset(dataset).ok
+    assert episodes_that_read(dataset) == list(range(DATA.episodes))
+
+
+@pytest.mark.parametrize("count", [1, 64])
+def test_flipped_bytes_in_a_frame(dataset: Path, count: int) -> None:
+    step, view = 14, 1  # episode 1 (steps 12-23), its step 2
+    path, offset, size = frame_location(shard_of(dataset), step, view)
+    flip(path, offset + (size // 2 if count == 1 else 0), min(count, size))
+    (problem,) = verify_dataset(dataset).problems
+    assert (problem.array, problem.episode) == ("data/image", 1)
+    assert "between its steps 2 and 2" in problem.message
+    data = open_dataset(dataset)
+    with pytest.raises(DatasetCorruptError, match=r"episode 1 \(its step 2\), data/image"):
+        data.episode(1)
+    out = np.empty((1, 16, 16, 3), np.uint8)
+    with pytest.raises(DatasetCorruptError, match="view 1 cannot be decoded"):
+        data.read_frames(np.array([step]), np.array([view]), out)
+    data.read_frames(np.array([step]), np.array([0]), out)  # the other view is intact
+    assert episodes_that_read(dataset) == [0, 2, 3, 4]
+
+
+def test_flipped_byte_in_a_state_chunk(dataset: Path) -> None:
+    chunk = shard_of(dataset) / "data" / "state" / "c" / "3" / "0"  # steps 24-31
+    flip(chunk, chunk.stat().st_size // 2)
+    (problem,) = verify_dataset(dataset).problems
+    assert problem.array == "data/state"
+    assert "steps 24-31 (episodes 2-2)" in problem.message and "CRC32C mismatch" in problem.message
+    with pytest.raises(DatasetCorruptError, match=r"steps 24-31 \(episodes 2-2\), data/state"):
+        open_dataset(dataset).column("state")
+    assert episodes_that_read(dataset) == [0, 1, 3, 4]
+
+
+def test_a_deleted_state_chunk_is_never_read_as_zeros(dataset: Path) -> None:
+    (shard_of(dataset) / "data" / "state" / "c" / "1" / "0").unlink()  # steps 8-15
+    (problem,) = verify_dataset(dataset).problems
+    assert problem.array == "data/state" and "steps 8-15 (episodes 0-1)" in problem.message
+    assert "missing" in problem.message
+    with pytest.raises(DatasetCorruptError, match="chunk file is missing"):
+        WindowSampler(dataset, SamplerConfig(length=4, batch_size=2)).batch()
+    assert episodes_that_read(dataset) == [2, 3, 4]
+
+
+def test_a_truncated_state_chunk(dataset: Path) -> None:
+    chunk = shard_of(dataset) / "data" / "state" / "c" / "0" / "0"
+    chunk.write_bytes(chunk.read_bytes()[:-7])
+    (problem,) = verify_dataset(dataset).problems
+    assert problem.array == "data/state" and "steps 0-7 (episodes 0-0)" in problem.message
+    assert episodes_that_read(dataset) == [1, 2, 3, 4]
+
+
+def test_a_deleted_image_shard_file(dataset: Path) -> None:
+    path, _, _ = frame_location(shard_of(dataset), 40, 0)  # steps 40-47: episodes 3
+    path.unlink()
+    (problem,) = verify_dataset(dataset).problems
+    assert problem.array == "data/image" and "steps 40-47 (episodes 3-3)" in problem.message
+    assert "missing" in problem.message
+    with pytest.raises(DatasetCorruptError, match=r"episode 3 \(its step 4\).*missing"):
+        open_dataset(dataset).episode(3)
+    assert episodes_that_read(dataset) == [0, 1, 2, 4]
+
+
+def test_every_damaged_chunk_is_reported(dataset: Path) -> None:
+    shard = shard_of(dataset)
+    flip(shard / "data" / "state" / "c" / "0" / "0", 5)
+    (shard / "data" / "state" / "c" / "6" / "0").unlink()  # steps 48-55
+    path, offset, _ = frame_location(shard, 50, 0)  # episode 4, its step 2
+    flip(path, offset)
+    path, offset, _ = frame_location(shard, 51, 1)  # and its step 3
+    flip(path, offset)
+    problems = verify_dataset(dataset).problems
+    located = sorted((p.array, p.episode, p.message.split(":")[0]) for p in problems)
+    assert located == [
+        ("data/image", 4, "2 step(s) between its steps 2 and 3 cannot be decoded (CRC32C mismatch)"),
+        ("data/state", None, "steps 0-7 (episodes 0-0)"),
+        ("data/state", None, "steps 48-55 (episodes 4-4)"),
+    ]
+
+
+def test_a_damaged_meta_chunk(dataset: Path) -> None:
+    flip(shard_of(dataset) / "meta" / "episode_seed" / "c" / "0", 3)
+    with pytest.raises(DatasetCorruptError, match="episodes 0-4, meta/episode_seed: cannot be "
+                                                  "decoded"):
+        open_dataset(dataset)
+    (problem,) = verify_dataset(dataset).problems
+    assert "meta/episode_seed" in str(problem) and "CRC32C mismatch" in str(problem)
+
+
+def test_format_1_shards_still_read(tmp_path: Path) -> None:
+    old = write_synthetic_dataset(tmp_path / "old", DATA,
+                                  StorageLayout(steps_per_file=8, checksums=False))
+    meta_path = shard_of(old) / "zarr.json"
+    doc = json.loads(meta_path.read_text())
+    doc["attributes"]["twist"]["format_version"] = 1
+    del doc["attributes"]["twist"]["layout"]["checksums"]
+    meta_path.write_text(json.dumps(doc))
+    assert not open_dataset(old).shards[0].layout.checksums
+    assert verify_dataset(old).ok
+    assert episodes_that_read(old) == list(range(DATA.episodes))
+    shutil.rmtree(old)
