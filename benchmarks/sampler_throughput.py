@@ -4,7 +4,9 @@ Compares, in one run and on one dataset:
   (a) this sampler: cold (no frame cache: every frame decoded), warm (default cache, after a
       warm-up), and cold with 2 DataLoader workers;
   (b) naive per-window slicing of the same zarr arrays (the usual replay-buffer pattern);
-  (c) the same bytes as uncompressed NumPy memmaps in the page cache (the practical limit).
+  (c) the same bytes as uncompressed NumPy memmaps in the page cache (the practical limit);
+  (d) the sampler, cold and warm, on the same data written without checksums (format 1's
+      layout): the cost of checking every frame's CRC32C (target: at most 10% slower).
 Each method runs in its own process so its peak RSS is its own. Prints one JSON line.
 
     python benchmarks/sampler_throughput.py [--steps 20000] [--dataset DIR] [--seconds 8]
@@ -26,6 +28,7 @@ import numpy as np
 
 from twist_data.reader import open_dataset
 from twist_data.sampler import SamplerConfig, WindowDataset, WindowSampler
+from twist_data.storage import StorageLayout
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 
 B, L = 16, 50
@@ -146,7 +149,9 @@ def build(args: argparse.Namespace, work: Path) -> tuple[Path, Path, dict]:
                              seed=0)
         t = time.perf_counter()
         write_synthetic_dataset(path, config)
-        print(f"built {args.steps} steps in {time.perf_counter() - t:.1f}s", file=sys.stderr)
+        write_synthetic_dataset(work / "ds-unchecked", config, StorageLayout(checksums=False))
+        print(f"built {args.steps} steps twice in {time.perf_counter() - t:.1f}s",
+              file=sys.stderr)
     ds = open_dataset(path)
     raw = work / "raw"
     raw.mkdir()
@@ -181,10 +186,14 @@ def main() -> None:
     try:
         path, raw, result = build(args, work)
         methods = ["sampler_cold", "sampler_warm", "loader_cold_2workers", "naive_zarr", "memmap"]
+        unchecked = work / "ds-unchecked"
+        if unchecked.exists():
+            methods += ["sampler_cold_unchecked", "sampler_warm_unchecked"]
         for method in methods:
-            cmd = [sys.executable, __file__, "--method", method, "--dataset", str(path),
-                   "--raw", str(raw), "--seconds", str(args.seconds), "--warmup",
-                   str(args.warmup)]
+            source = unchecked if method.endswith("_unchecked") else path
+            cmd = [sys.executable, __file__, "--method", method.removesuffix("_unchecked"),
+                   "--dataset", str(source), "--raw", str(raw), "--seconds", str(args.seconds),
+                   "--warmup", str(args.warmup)]
             line = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
             result[method] = json.loads(line.strip().splitlines()[-1])
             print(f"{method}: {result[method]}", file=sys.stderr)
@@ -194,10 +203,17 @@ def main() -> None:
         result["ratio_best_vs_naive"] = best / result["naive_zarr"]["windows_per_s"]
         result["ratio_best_vs_memmap"] = best / result["memmap"]["windows_per_s"]
         result["compression_ratio"] = result["memmap_bytes_on_disk"] / result["zarr_bytes_on_disk"]
+        for mode in ("cold", "warm"):
+            if f"sampler_{mode}_unchecked" in result:
+                result[f"checksum_slowdown_{mode}"] = 1 - (
+                    result[f"sampler_{mode}"]["windows_per_s"]
+                    / result[f"sampler_{mode}_unchecked"]["windows_per_s"])
         result["targets"] = {
             "windows_per_s>=2000": best >= 2000,
             "ratio_vs_naive>=3": result["ratio_best_vs_naive"] >= 3,
             "ratio_vs_memmap>=0.5": result["ratio_best_vs_memmap"] >= 0.5,
+            **{f"checksum_slowdown_{m}<=0.10": result[f"checksum_slowdown_{m}"] <= 0.10
+               for m in ("cold", "warm") if f"checksum_slowdown_{m}" in result},
         }
         print(json.dumps(result))
     finally:

@@ -6,6 +6,8 @@ import dataclasses
 import json
 import logging
 import sys
+import types
+import typing
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
@@ -76,6 +78,7 @@ def parse_settings(pairs: list[str], config_type: type) -> dict[str, Any]:
     """``--set KEY=VALUE`` options as overrides of ``config_type``'s fields; each VALUE is read
     as JSON (numbers, true/false, null) or else taken as a string."""
     fields = {f.name for f in dataclasses.fields(config_type)}
+    hints = typing.get_type_hints(config_type)
     settings: dict[str, Any] = {}
     for pair in pairs:
         key, sep, text = pair.partition("=")
@@ -83,7 +86,32 @@ def parse_settings(pairs: list[str], config_type: type) -> dict[str, Any]:
             raise ConfigError(f"--set takes KEY=VALUE with KEY one of {', '.join(sorted(fields))}; "
                               f"got {pair!r}")
         try:
-            settings[key] = json.loads(text)
+            value = json.loads(text)
         except json.JSONDecodeError:
-            settings[key] = text
+            value = text
+        settings[key] = typed_setting(key, value, text, hints[key])
     return settings
+
+
+_KINDS = {int: "an integer", float: "a number", bool: "true or false", str: "text"}
+
+
+def typed_setting(key: str, value: Any, text: str, hint: Any) -> Any:
+    """``value`` (parsed from ``text``) checked against the field's annotation ``hint``; a
+    mismatch is one ConfigError naming the field, what it takes and what was given."""
+    allowed = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) \
+        else (hint,)
+    if value is None and type(None) in allowed:
+        return None
+    if str in allowed:
+        return text
+    for kind in (bool, int, float):
+        if kind in allowed and isinstance(value, kind) and (kind is bool
+                                                            or not isinstance(value, bool)):
+            return value
+    if float in allowed and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    known = [_KINDS[k] for k in allowed if k in _KINDS]
+    if not known:  # tuples, nested configs: the config's own checks judge them
+        return value
+    raise ConfigError(f"--set {key} must be {' or '.join(known)}, got {text!r}")

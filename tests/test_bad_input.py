@@ -87,7 +87,12 @@ def test_shards_with_different_schemas_do_not_mix(tmp_path: Path) -> None:
 
 def test_cli_errors_are_one_line_nonzero_and_change_nothing(fresh_dataset: Path,
                                                             tmp_path: Path) -> None:
+    afile = tmp_path / "afile.txt"
+    afile.write_text("not a dataset")
+    other = tmp_path / "other"
+    shutil.copytree(next(fresh_dataset.glob("*.zarr")), other / "collect-000.zarr")
     before = tree_snapshot(fresh_dataset)
+    other_before = tree_snapshot(other)
     cases = [
         (("info", tmp_path / "nope"), "does not exist"),
         (("episodes", tmp_path), "holds no shard"),
@@ -97,6 +102,12 @@ def test_cli_errors_are_one_line_nonzero_and_change_nothing(fresh_dataset: Path,
         (("export-video", fresh_dataset, tmp_path / "v.mp4", "--episode", "-7"),
          "dataset has 6 episodes; index -7 is out of range"),
         (("synth", tmp_path / "s", "--steps", "1"), "steps must be >= 2, got 1"),
+        (("render", fresh_dataset, tmp_path / "r", "--image-size", "0"),
+         "image_size must be >= 1 (or omitted for the dataset's), got 0"),
+        (("synth", afile, "--episodes", "1"), "exists and is not a folder"),
+        (("synth", other, "--episodes", "1", "--image-size", "32"),
+         f"{other} already holds a dataset (shard collect-000) that differs from the new shard "
+         "in image_height, image_width"),
     ]
     for args, message in cases:
         result = cli(*args)
@@ -105,7 +116,8 @@ def test_cli_errors_are_one_line_nonzero_and_change_nothing(fresh_dataset: Path,
         assert message in result.stderr, (args, result.stderr)
         assert len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert tree_snapshot(fresh_dataset) == before
-    assert not (tmp_path / "v.mp4").exists()
+    assert tree_snapshot(other) == other_before and afile.read_text() == "not a dataset"
+    assert not (tmp_path / "v.mp4").exists() and not (tmp_path / "r").exists()
 
 
 def test_cli_verify_exit_codes(fresh_dataset: Path) -> None:

@@ -239,3 +239,14 @@ def test_an_unknown_recipe_is_refused_in_one_line(inputs: tuple[Path, Path, Teac
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "unknown recipe 'fast'" in lines[0], result.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_a_badly_typed_setting_is_refused_in_one_line(inputs: tuple[Path, Path, Teacher],
+                                                      tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "twist_cli.distil", "--dataset", str(inputs[0]), "--out",
+         str(tmp_path / "run"), "--preset", "tiny", "--set", "batch_size=abc"],
+        capture_output=True, text=True)
+    assert result.returncode == 2
+    assert result.stderr.strip() == "error: --set batch_size must be an integer, got 'abc'"
+    assert not (tmp_path / "run").exists()

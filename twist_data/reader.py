@@ -326,9 +326,8 @@ class MatchingDataset:
     def _check_schema(self) -> None:
         ref = self.shards[0]
         for shard in self.shards[1:]:
-            if shard.spec.schema_key() != ref.spec.schema_key():
-                diff = [k for k, v in ref.spec.schema_key().items()
-                        if shard.spec.schema_key()[k] != v]
+            diff = ref.spec.differences(shard.spec)
+            if diff:
                 raise SchemaMismatchError(
                     f"shards {ref.name} and {shard.name} cannot form one dataset: they differ "
                     f"in {', '.join(diff)}"

@@ -99,10 +99,13 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
     """Write a new dataset at ``out`` with the states, actions and rewards of ``source`` and
     images rendered under ``config``; with ``add_views`` the source's views are kept and the
     new ones appended. The source is only read."""
+    if image_size is not None and image_size < 1:
+        raise ConfigError(f"image_size must be >= 1 (or omitted for the dataset's), got "
+                          f"{image_size}")
     src = open_dataset(source)
     spec = src.spec
     blocks = render_blocks(spec) if add_views else []
-    size = image_size or spec.image_height
+    size = spec.image_height if image_size is None else image_size
     if add_views and size != spec.image_height:
         raise ConfigError(f"added views must match the dataset's image size {spec.image_height}, "
                           f"got {size}")

@@ -134,6 +134,11 @@ class DatasetSpec:
         out.pop("extra")
         return out
 
+    def differences(self, other: DatasetSpec) -> list[str]:
+        """Names of the schema fields in which ``other`` differs from this spec."""
+        mine, theirs = self.schema_key(), other.schema_key()
+        return [k for k, v in mine.items() if theirs.get(k) != v]
+
 
 @dataclass(frozen=True)
 class ArraySpec:

@@ -25,7 +25,13 @@ import numpy as np
 import zarr
 
 from twist_data import __version__
-from twist_data.errors import InvalidEpisodeError, NotADatasetError, ShardLockedError
+from twist_data.errors import (
+    InvalidEpisodeError,
+    NotADatasetError,
+    SchemaMismatchError,
+    ShardLockedError,
+)
+from twist_data.reader import ShardReader
 from twist_data.schema import (
     ATTRS_KEY,
     EPISODE_COLUMNS,
@@ -60,6 +66,25 @@ def shard_path(dataset_dir: str | os.PathLike[str], name: str) -> Path:
             "or end with '.zarr'"
         )
     return Path(dataset_dir) / f"{name}.zarr"
+
+
+def refuse_other_schema(dataset_dir: Path, spec: DatasetSpec) -> None:
+    """Refuse to add a shard of ``spec`` to ``dataset_dir`` if that is a file, or a folder
+    holding shards of another schema: the new shard would make the whole dataset unreadable.
+    Checked before anything is created."""
+    if dataset_dir.exists() and not dataset_dir.is_dir():
+        raise NotADatasetError(f"{dataset_dir} exists and is not a folder; a dataset is a folder")
+    if not dataset_dir.is_dir():
+        return
+    for existing in sorted(dataset_dir.glob("*.zarr")):
+        if existing.name.startswith(".") or not (existing / "zarr.json").is_file():
+            continue
+        diff = ShardReader(existing).spec.differences(spec)
+        if diff:
+            raise SchemaMismatchError(
+                f"{dataset_dir} already holds a dataset (shard {existing.stem}) that differs from "
+                f"the new shard in {', '.join(diff)}; write to another folder")
+        return
 
 
 class ShardWriter:
@@ -106,6 +131,7 @@ class ShardWriter:
         final = shard_path(dataset_dir, name)
         if final.exists():
             raise NotADatasetError(f"shard {final} already exists; resume it instead of creating it")
+        refuse_other_schema(final.parent, spec)
         final.parent.mkdir(parents=True, exist_ok=True)
         tmp = final.parent / f".{name}.zarr.creating-{os.getpid()}"
         shutil.rmtree(tmp, ignore_errors=True)
