@@ -105,6 +105,7 @@ def test_cli_errors_are_one_line_nonzero_and_change_nothing(fresh_dataset: Path,
         (("render", fresh_dataset, tmp_path / "r", "--image-size", "0"),
          "image_size must be >= 1 (or omitted for the dataset's), got 0"),
         (("synth", afile, "--episodes", "1"), "exists and is not a folder"),
+        (("export-hdf5", fresh_dataset, tmp_path), "is a folder; give the path of the .h5 file"),
         (("synth", other, "--episodes", "1", "--image-size", "32"),
          f"{other} already holds a dataset (shard collect-000) that differs from the new shard "
          "in image_height, image_width"),

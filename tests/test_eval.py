@@ -320,3 +320,12 @@ def test_image_agents_see_the_world_rendered_as_their_data_was(gl, agents, tmp_p
     assert made == [2, 1, 1]
     with pytest.raises(ConfigError, match="supersample must be > 0, got 0"):
         EvalConfig(supersample=0)
+
+
+def test_an_output_that_is_a_file_is_refused_before_any_episode(tmp_path) -> None:
+    afile = tmp_path / "afile.txt"
+    afile.write_text("kept")
+    with pytest.raises(EvalError, match="exists and is not a folder"):
+        run_evaluation({"zero": "zero"}, EvalConfig(task="cartpole-balance", episodes=1,
+                                                    max_steps=2), [0], afile)
+    assert afile.read_text() == "kept"

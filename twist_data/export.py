@@ -82,8 +82,10 @@ def export_hdf5(dataset_path: str | os.PathLike[str], out: str | os.PathLike[str
     Episodes are streamed one at a time, so memory stays bounded by the longest episode.
     The file is written under a temporary name and renamed when complete.
     """
-    ds = open_dataset(dataset_path)
     out = Path(out)
+    if out.is_dir():
+        raise TwistError(f"{out} is a folder; give the path of the .h5 file to write")
+    ds = open_dataset(dataset_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     spec = ds.spec

@@ -328,6 +328,8 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
         raise EvalError(f"the agent to pair against, {against!r}, is not among the agents "
                         f"({', '.join(agents)})")
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise EvalError(f"output {str(out)!r} exists and is not a folder")
     loaded = {name: load_agent(a, device, config.task, config.posterior)
               if isinstance(a, str | os.PathLike)
               else a for name, a in agents.items()}
