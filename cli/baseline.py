@@ -12,6 +12,7 @@ import typer
 from twist_cli.common import new_app, out, progress_bar, run_app
 from twist_models.baselines import KINDS, BaselineConfig, train_baseline
 from twist_models.baselines import Progress as BaselineProgress
+from twist_models.device import resolve_device
 
 app = new_app()
 
@@ -37,6 +38,7 @@ def main(
     config = BaselineConfig(kind=kind, model=preset, steps=steps, batch_size=batch,
                             length=length, view=view, seed=seed)
     folder = out_dir if out_dir is not None else dataset / f"baseline-{kind}"
+    resolve_device(device)  # before the bar: a refusal is then the only line printed
     with progress_bar(quiet, "training", describe) as report:
         summary = train_baseline(dataset, folder, config, resume=resume, device=device,
                                  on_progress=report)

@@ -21,6 +21,7 @@ from twist_models.collect import (
     stored_config,
 )
 from twist_models.collect import Progress as CollectProgress
+from twist_models.device import resolve_device
 
 app = new_app()
 
@@ -70,6 +71,7 @@ def main(
         config = dataclasses.replace(stored_config(out_dir, name), **given)
     else:
         config = collect_preset(preset, **given)
+    resolve_device(device)  # before the bar: a refusal is then the only line printed
     with progress_bar(quiet, "collecting", describe) as report:
         summary = collect(out_dir, config, shard=name, resume=resume, device=device,
                           on_progress=report)

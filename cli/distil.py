@@ -11,6 +11,7 @@ from typing import Annotated
 import typer
 
 from twist_cli.common import new_app, out, parse_settings, progress_bar, run_app
+from twist_models.device import resolve_device
 from twist_models.distill import (
     DISTIL_PRESETS,
     RECIPES,
@@ -75,6 +76,7 @@ def main(
     else:
         config = distil_preset(preset, recipe, **given)
     device = initialise_distributed(device)
+    resolve_device(device)  # before the bar: a refusal is then the only line printed
     with progress_bar(quiet, "distilling", describe) as report:
         summary = distil(dataset, folder, config, teacher=teacher, resume=resume, device=device,
                          on_progress=report)

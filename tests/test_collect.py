@@ -455,3 +455,19 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:
                           capture_output=True, text=True)
     assert done.returncode == 2 and "--set takes KEY=VALUE" in done.stderr
     assert "'model_lr'" in done.stderr and not any(tmp_path.iterdir())
+    for setting, message in (("model_lr=fast", "--set model_lr must be a number, got 'fast'"),
+                             ("batch_size=abc", "--set batch_size must be an integer")):
+        done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--set", setting],
+                              capture_output=True, text=True)
+        assert done.returncode == 2 and message in done.stderr, done.stderr
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a torch that sees no CUDA GPU")
+def test_a_device_this_torch_cannot_use_is_refused_before_anything_is_created(
+        tmp_path: Path) -> None:
+    done = subprocess.run([*COLLECT, "--out", str(tmp_path / "d"), "--preset", "tiny",
+                           "--device", "cuda"], capture_output=True, text=True)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert done.stderr.strip().startswith("error: device 'cuda' is not available")
+    assert not (tmp_path / "d").exists()

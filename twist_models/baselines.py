@@ -46,6 +46,7 @@ from twist_models.config import (
     require_positive,
     to_json,
 )
+from twist_models.device import resolve_device
 from twist_models.runlog import append_csv, prepare_output, refuse_resume, resume_conflicts
 from twist_models.teacher import Dreamer
 
@@ -129,6 +130,7 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
                    on_progress: Callable[[Progress], None] | None = None) -> dict[str, Any]:
     """Train baseline ``config.kind`` offline on D and write ``out/agent.pt``; returns the
     run summary (also ``summary.json``)."""
+    resolve_device(device)
     dataset, out = Path(dataset), Path(out)
     if not dataset.exists():
         raise BaselineError(f"dataset {str(dataset)!r} does not exist")

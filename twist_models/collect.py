@@ -65,6 +65,7 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import plot_learning_curves
+from twist_models.device import resolve_device
 from twist_models.networks import single_threaded
 from twist_models.runlog import Board, append_csv, prepare_output, refuse_resume, resume_conflicts
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teacher, save_teacher
@@ -447,6 +448,7 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
 
     ``render_process`` renders in a child process, overlapped with physics and acting (the
     same pixels; False renders in this process, e.g. to profile or debug the renderer)."""
+    torch_device = resolve_device(device)
     out = Path(out)
     path = shard_path(out, shard)
     folder = run_dir(out, shard)
@@ -455,7 +457,6 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
     env = TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
     dr_config = dr_preset(config.dr, config.backgrounds)
     teacher_config = config.teacher_config(env.state_dim, env.action_dim)
-    torch_device = torch.device(device)
     make_renderer = RenderProcess if render_process else DRRenderer
     with ExitStack() as stack:
         renderer = stack.enter_context(make_renderer(config.task, dr_config, config.image_size,

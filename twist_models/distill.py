@@ -67,6 +67,7 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import plot_agreement
+from twist_models.device import resolve_device
 from twist_models.frame_targets import (
     FrameBatches,
     TeacherTargets,
@@ -494,6 +495,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
            ) -> DistilSummary:
     """Distil a student from the matching dataset ``dataset`` and a frozen ``teacher``
     checkpoint (default: the dataset's final teacher) into the run folder ``out``."""
+    torch_device = resolve_device(device)
     out, dataset_path = Path(out), Path(dataset)
     data = _open_inputs(dataset_path, config)
     teacher_path = Path(teacher) if teacher is not None else find_teacher(dataset_path)
@@ -504,7 +506,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     _check_output(out, config, student_config, resume)
     rank, world = _rank_and_world()
     run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,
-               torch.device(device), rank, world)
+               torch_device, rank, world)
     return run.loop(on_progress)
 
 

@@ -36,6 +36,7 @@ from twist_models.checkpoint import read_checkpoint
 from twist_models.collect import teacher_policy
 from twist_models.config import require_positive
 from twist_models.curves import plot_returns
+from twist_models.device import resolve_device
 from twist_models.networks import single_threaded
 from twist_models.rssm import require_posterior_read
 from twist_models.statistics import PairedDifference, paired_difference, stratified_bootstrap
@@ -327,6 +328,7 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
     if against is not None and against not in agents:
         raise EvalError(f"the agent to pair against, {against!r}, is not among the agents "
                         f"({', '.join(agents)})")
+    resolve_device(device)
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise EvalError(f"output {str(out)!r} exists and is not a folder")
