@@ -136,6 +136,24 @@ def export_video_cmd(
     out.print(f"wrote {path}")
 
 
+@app.command()
+def salvage(
+    dataset: DatasetArg,
+    out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="New dataset folder to create.")],
+) -> None:
+    """Copy every episode of a damaged dataset that still reads cleanly into OUT, and list
+    the episodes left behind (see `verify`)."""
+    from twist_data.salvage import salvage_dataset
+
+    with progress_bar("salvaging") as update:
+        report = salvage_dataset(dataset, out_dir, on_episode=update)
+    for index, why in report.dropped.items():
+        err.print(f"left behind episode {index}: {why}", markup=False, highlight=False,
+                  soft_wrap=True)
+    out.print(f"kept {len(report.kept)} of {len(report.kept) + len(report.dropped)} episodes "
+              f"in {out_dir}")
+
+
 @app.command("export-hdf5")
 def export_hdf5_cmd(
     dataset: DatasetArg,

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -171,3 +173,30 @@ def test_format_1_shards_still_read(tmp_path: Path) -> None:
     assert verify_dataset(old).ok
     assert episodes_that_read(old) == list(range(DATA.episodes))
     shutil.rmtree(old)
+
+
+def test_salvage_keeps_every_intact_episode_and_names_the_rest(dataset: Path,
+                                                               tmp_path: Path) -> None:
+    shard = shard_of(dataset)
+    path, offset, _ = frame_location(shard, 14, 0)  # episode 1
+    flip(path, offset)
+    (shard / "data" / "state" / "c" / "6" / "0").unlink()  # steps 48-55: episode 4
+    result = subprocess.run([sys.executable, "-m", "twist_cli.data", "salvage", str(dataset),
+                             str(tmp_path / "kept")], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "kept 3 of 5 episodes" in result.stdout
+    left = [line for line in result.stderr.splitlines() if line.startswith("left behind")]
+    assert [line.split(":")[0] for line in left] == ["left behind episode 1",
+                                                     "left behind episode 4"]
+    assert verify_dataset(tmp_path / "kept").ok
+    copy = open_dataset(tmp_path / "kept")
+    for new, old in enumerate([0, 2, 3]):
+        expected, info = synthetic_episode(DATA, old)
+        got = copy.episode(new)
+        for key, value in expected.arrays().items():
+            np.testing.assert_array_equal(got.arrays()[key], value, err_msg=key)
+        assert copy.episode_info(new).seed == info.seed
+    assert copy.spec.extra["salvaged_from"] == str(dataset)
+    refused = subprocess.run([sys.executable, "-m", "twist_cli.data", "salvage", str(dataset),
+                              str(tmp_path / "kept")], capture_output=True, text=True)
+    assert refused.returncode == 2 and "is not an empty folder" in refused.stderr
