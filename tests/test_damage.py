@@ -200,3 +200,19 @@ def test_salvage_keeps_every_intact_episode_and_names_the_rest(dataset: Path,
     refused = subprocess.run([sys.executable, "-m", "twist_cli.data", "salvage", str(dataset),
                               str(tmp_path / "kept")], capture_output=True, text=True)
     assert refused.returncode == 2 and "is not an empty folder" in refused.stderr
+
+
+def test_verify_applies_the_writers_own_episode_rules(dataset: Path) -> None:
+    """Data that decodes cleanly but breaks the format (a checksum cannot catch a valid
+    chunk written wrong) is found by the same rules the writer enforces."""
+    shard = shard_of(dataset)
+    is_first = zarr.open_array(shard / "data" / "is_first", mode="r+")
+    is_first[12 + 3] = True  # episode 1, its step 3
+    reward = zarr.open_array(shard / "data" / "reward", mode="r+")
+    reward[24 + 5] = reward[24 + 5] + 1.0  # episode 2's stored return no longer adds up
+    problems = sorted((p.episode, p.message) for p in verify_dataset(dataset).problems)
+    assert problems == [
+        (1, "is_first must be true exactly at step 0, got steps [0, 3]"),
+        (2, problems[1][1]),
+    ]
+    assert problems[1][1].startswith("stored return") and "sum of rewards" in problems[1][1]

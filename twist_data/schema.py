@@ -292,7 +292,9 @@ def episode_problems(episode: Episode, info: EpisodeInfo, spec: DatasetSpec) -> 
         if value.dtype != np.dtype(a.dtype):
             problems.append(f"array {name!r} has dtype {value.dtype}, expected {a.dtype}")
         elif value.dtype.kind == "f" and not np.isfinite(value).all():
-            problems.append(f"array {name!r} contains NaN or inf")
+            bad = ~np.isfinite(value.reshape(len(value), -1)).all(axis=1)
+            problems.append(f"array {name!r} contains NaN or inf (first at step "
+                            f"{int(np.flatnonzero(bad)[0])} of the episode)")
     if problems:
         return problems
     first = np.flatnonzero(episode.is_first).tolist()

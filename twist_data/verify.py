@@ -17,7 +17,13 @@ import zarr
 
 from twist_data.errors import DatasetCorruptError, TwistError
 from twist_data.reader import ShardReader, find_shards
-from twist_data.schema import EPISODE_COLUMNS, step_arrays
+from twist_data.schema import (
+    EPISODE_COLUMNS,
+    Episode,
+    EpisodeInfo,
+    episode_problems,
+    step_arrays,
+)
 from twist_data.storage import FrameFile, reason, shard_file
 
 log = logging.getLogger(__name__)
@@ -109,8 +115,7 @@ def _verify_images(shard: ShardReader, problem: Callable[..., None],
 
 def _verify_shard(shard: ShardReader, report: VerifyReport,
                   tick: Callable[[int], None]) -> None:
-    name, n, ends = shard.name, shard.n_steps, shard.episode_ends
-    starts = shard.episode_starts
+    name, n = shard.name, shard.n_steps
 
     def problem(message: str, array: str | None = None, episode: int | None = None) -> None:
         report.problems.append(Problem(name, message, array, episode))
@@ -146,34 +151,9 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
         if damaged:
             continue
         block = arr[0:n]
-        if block.dtype.kind == "f":
-            bad = np.flatnonzero(~np.isfinite(block.reshape(block.shape[0], -1)).all(axis=1))
-            episodes = np.searchsorted(ends, bad, side="right")
-            for ep in np.unique(episodes):
-                first = int(bad[episodes == ep][0])
-                problem(f"contains NaN or inf (first at step {first - int(starts[ep])} of the "
-                        "episode)", key, int(ep))
         loaded[key] = block
 
-    flags = [loaded.get(f"data/{f}") for f in ("is_first", "is_last", "is_terminal", "discount",
-                                                 "reward")]
-    if all(f is not None for f in flags):
-        is_first, is_last, is_terminal, discount, reward = flags
-        returns = shard.episode_column("episode_return")
-        for e, (a, b) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True)):
-            if not is_first[a] or is_first[a + 1:b].any():
-                problem("is_first is not true exactly at the episode's first step",
-                        "data/is_first", e)
-            if not is_last[b - 1] or is_last[a:b - 1].any():
-                problem("is_last is not true exactly at the episode's last step", "data/is_last", e)
-            if (is_terminal[a:b] & ~is_last[a:b]).any():
-                problem("is_terminal is true at a step that is not last", "data/is_terminal", e)
-            if (discount[a:b][is_terminal[a:b]] != 0).any():
-                problem("discount is not 0 at a terminal step", "data/discount", e)
-            total = float(np.sum(reward[a:b], dtype=np.float64))
-            if not np.isclose(total, returns[e], rtol=1e-6, atol=1e-6):
-                problem(f"stored return {returns[e]:.6g} differs from the sum of rewards "
-                        f"{total:.6g}", "meta/episode_return", e)
+    _check_episodes(shard, loaded, problem)
     leftovers = list(shard.path.rglob("*.partial"))
     if leftovers:
         report.notes.append(
@@ -186,6 +166,43 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
             f"shard {name}: {beyond} uncommitted step(s) beyond the commit record "
             "(an interrupted episode; invisible to readers, discarded on resume)"
         )
+
+
+def _check_episodes(shard: ShardReader, loaded: dict[str, np.ndarray],
+                    problem: Callable[..., None]) -> None:
+    """The writer's own rules (:func:`~twist_data.schema.episode_problems`, one source) on
+    every committed episode whose arrays all read, and the stored return against the
+    rewards. Images are checked for shape only (their bytes were checked above)."""
+    spec = shard.spec
+    names = [a.name for a in step_arrays(spec) if a.name != "image"]
+    if not all(f"data/{name}" in loaded for name in names):
+        return  # a damaged array was reported already; its episodes cannot be judged
+    frame_shape = tuple(shard.array("data/image").shape[1:])
+    returns = shard.episode_column("episode_return")
+    policies = shard.policy_names
+    for e, (a, b) in enumerate(zip(shard.episode_starts.tolist(), shard.episode_ends.tolist(),
+                                   strict=True)):
+        data = {name: loaded[f"data/{name}"][a:b] for name in names}
+        data["image"] = np.broadcast_to(np.zeros((), np.uint8), (b - a, *frame_shape))
+        dr = {k.removeprefix("dr/"): data.pop(k) for k in list(data) if k.startswith("dr/")}
+        code = int(shard.episode_column("episode_policy")[e])
+        try:
+            info = EpisodeInfo(
+                seed=int(shard.episode_column("episode_seed")[e]),
+                policy=policies.get(code, f"code {code}"),
+                teacher_step=int(shard.episode_column("episode_teacher_step")[e]),
+                env_step=int(shard.episode_column("episode_env_step")[e]),
+                dr={p.name: shard.episode_column(f"dr/{p.name}")[e]
+                    for p in spec.episode_dr_params})
+        except TwistError as exc:
+            problem(str(exc), "meta/episode_policy", e)
+            continue
+        for message in episode_problems(Episode(**data, dr=dr), info, spec):
+            problem(message, None, e)
+        total = float(np.sum(data["reward"], dtype=np.float64))
+        if not np.isclose(total, returns[e], rtol=1e-6, atol=1e-6):
+            problem(f"stored return {returns[e]:.6g} differs from the sum of rewards "
+                    f"{total:.6g}", "meta/episode_return", e)
 
 
 def verify_dataset(path: str | os.PathLike[str],
