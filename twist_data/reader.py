@@ -255,14 +255,15 @@ class ShardReader:
         """Frame reader with ``read_into(steps, views, out, rows)``; direct when possible."""
         if self._frames is None:
             arr = self.array("data/image")
-            decoder = frame_decoder(arr)
-            if decoder is None:
+            direct = frame_decoder(arr)
+            if direct is None:
                 log.warning("shard %s: image layout not recognised, reading through zarr (slow)",
                             self.path)
                 self._frames = _ZarrFrameReader(arr)
             else:
+                decoder, checksum = direct
                 self._frames = FrameReader(arr, self.path / "data" / "image", decoder,
-                                           int(arr.shards[0]))
+                                           int(arr.shards[0]), checksum)
         return self._frames
 
     def episode(self, index: int) -> Episode:
