@@ -80,7 +80,6 @@ from twist_models.losses import (
     action_matching_loss,
     categorical_kl,
     distillation_loss,
-    frame_posterior_loss,
     imagined_distillation_loss,
 )
 from twist_models.runlog import (
@@ -98,7 +97,7 @@ log = logging.getLogger(__name__)
 KEYS = ("image", "state", "action", "is_first")
 PRECISIONS = ("float32", "bfloat16", "auto")
 TERMS = ("h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl", "action",
-         "frame_post_kl", "state", "own_post_kl")
+         "frame_post_kl", "state")
 METRIC_COLUMNS = ("updates", "wall_s", "updates_per_s", "data_wait_share", "loss", *TERMS,
                   "grad_norm")
 HELDOUT_COLUMNS = ("updates", "frame_updates", "h_mse", "h_explained", "post_kl", "prior_kl",
@@ -178,11 +177,6 @@ class DistilConfig:
     state_weight: float = 0.0
     """Weight of the per-frame state read-out term, each state component weighted by the
     teacher actor's sensitivity to it (adds a linear state head to the student; 0: off)."""
-    own_post_weight: float = 0.0
-    """Weight of KL(q_student(z | h, image) || q_teacher(z | h, state)) with both posteriors
-    read at the *student's own* h along the windows (held fixed): the student's posterior
-    should be the teacher's posterior function wherever its h is, so that its filter corrects
-    its own h errors as the teacher's does (0: off, the paper)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -228,8 +222,7 @@ class DistilConfig:
                          "frame_batch", "frame_eval_every")
         require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
                              "post_weight", "imagined_weight", "action_weight", "workers",
-                             "rare_states", "frame_post_weight", "state_weight", "frame_steps",
-                             "own_post_weight")
+                             "rare_states", "frame_post_weight", "state_weight", "frame_steps")
         if self.frame_steps and not self.frame_terms:
             raise ConfigError(f"frame_steps={self.frame_steps} trains on the per-frame terms "
                               "alone, but frame_post_weight and state_weight are both 0")
@@ -357,9 +350,6 @@ class Distillation(nn.Module):
             frame = self.window_frame_terms(embed, t_post, batch["state"])
             terms.update(frame)
             loss = loss + frame_loss(frame, c)
-        if c.own_post_weight > 0:
-            terms["own_post_kl"] = self.own_posterior_term(s_post, embed, batch["state"])
-            loss = loss + c.own_post_weight * terms["own_post_kl"]
         if c.action_weight > 0:
             terms["action"] = self.action_term(s_post, t_post)
             loss = loss + c.action_weight * terms["action"]
@@ -396,14 +386,6 @@ class Distillation(nn.Module):
         sensitivity = actor_sensitivity(self.teacher, t_post["deter"], state)
         return frame_terms(self.student, self.teacher, embed, t_post["deter"], state,
                            sensitivity / self.sensitivity_scale, t_post["logits"])
-
-    def own_posterior_term(self, s_post: dict[str, torch.Tensor], embed: torch.Tensor,
-                           state: torch.Tensor) -> torch.Tensor:
-        """Both posteriors at the student's own h [B, L, D] (no gradient into h), matched."""
-        wm, deter = self.teacher.world_model, s_post["deter"].detach()
-        with torch.no_grad():
-            target = wm.rssm.posterior_logits(deter, wm.embed(state))
-        return frame_posterior_loss(self.student.rssm.posterior_logits(deter, embed), target)
 
     def action_term(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
                     ) -> torch.Tensor:
