@@ -250,3 +250,31 @@ def test_a_badly_typed_setting_is_refused_in_one_line(inputs: tuple[Path, Path, 
     assert result.returncode == 2
     assert result.stderr.strip() == "error: --set batch_size must be an integer, got 'abc'"
     assert not (tmp_path / "run").exists()
+
+
+def test_bfloat16_autocast_changes_the_arithmetic_not_the_objective(
+        inputs: tuple[Path, Path, Teacher]) -> None:
+    dataset, _, teacher = inputs
+    data = open_dataset(dataset)
+    from twist_data.sampler import WindowSampler
+
+    windows = WindowSampler(data, distil_preset("tiny").sampler("all", 0)).batch()
+    batch = {k: torch.as_tensor(windows[k]) for k in ("image", "state", "action", "is_first")}
+    torch.manual_seed(0)
+    student = Student(student_preset("tiny", teacher.config, 64, norm="layer"))
+    losses = {}
+    for precision in ("float32", "bfloat16"):
+        config = distil_preset("tiny", precision=precision, imagined=False)
+        torch.manual_seed(1)  # the same sampling draws
+        with torch.no_grad():
+            _, _, terms, embed = Distillation(student, teacher, config).filter(batch)
+        assert embed.dtype == torch.float32  # the RSSM always reads float32
+        losses[precision] = terms
+    for key, value in losses["float32"].items():
+        assert float(losses["bfloat16"][key]) == pytest.approx(float(value), rel=0.05), key
+    # bfloat16 keeps 8 bits of mantissa: the embeddings differ, if only slightly.
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        low = student.encoder(batch["image"][:, :2])
+    assert low.dtype == torch.bfloat16
+    with torch.no_grad():
+        assert not torch.equal(low.float(), student.encoder(batch["image"][:, :2]))
