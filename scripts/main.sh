@@ -26,7 +26,10 @@ twist-data contact-sheet "$TASK" "$OUT/contact-sheet.png"
 cp "$OUT/dataset/collect/collect-000/learning-curve.png" "$OUT/learning-curve.png"
 DISTIL=()
 if [[ -f "$OUT/student/config.json" ]]; then DISTIL=(--resume); fi
-twist-distil --dataset "$OUT/dataset" --out "$OUT/student" --preset "$PRESET" "${DISTIL[@]}"
+# The dense recipe (per-frame targets from D's state; not in the paper): RECIPE=paper runs
+# the paper's objective alone (README, "Recipes").
+twist-distil --dataset "$OUT/dataset" --out "$OUT/student" --preset "$PRESET" \
+             --recipe "${RECIPE:-dense}" "${DISTIL[@]}"
 cp "$OUT/student/latent-agreement.png" "$OUT/latent-agreement.png"
 EVAL=(--episodes "${EVAL_EPISODES:-10}")
 if [[ "$PRESET" == tiny ]]; then EVAL=(--episodes 2 --max-steps 50); fi
