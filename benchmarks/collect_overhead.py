@@ -1,5 +1,5 @@
 """Collection overhead: agent steps/s of everything the collector does except the teacher's
-gradient updates (issue 5 target: >= 250 agent steps/s with K=2 views at 64x64).
+gradient updates (target: >= 250 agent steps/s with K=2 views at 64x64).
 
 Each slice records ``--episodes`` episodes of ``--task`` into a fresh shard: physics with
 action repeat 2, the acting policy, K randomised renders per step, DR draws and the zarr

@@ -1,4 +1,4 @@
-"""Distillation speed (issue 6): updates/s of ``twist-distil`` and the share of step time spent
+"""Distillation speed: updates/s of ``twist-distil`` and the share of step time spent
 waiting for data, against the same updates on one batch held in memory (the baseline, run in
 the same process: no decoding, no transfer).
 

@@ -1,4 +1,4 @@
-"""How much does a distilled student's posterior rely on the image? (issue 7 diagnosis)
+"""How much does a distilled student's posterior rely on the image?
 
 On held-out windows of D, both filters run as in distillation (``filter_read=mean``, so
 the figures carry no sampling noise) with the student's images left alone (``normal``, the

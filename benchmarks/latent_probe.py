@@ -1,4 +1,4 @@
-"""Where does a distilled student lose the teacher's behaviour? (issue 7 diagnosis)
+"""Where does a distilled student lose the teacher's behaviour?
 
 The teacher acts on states for ``--episodes`` episodes (``--acting student``: the student acts
 on images, so the states are those it meets itself); the same physics is rendered under

@@ -1,4 +1,4 @@
-"""What state does the student's latent hold? Read-outs along D's windows (issue 7 diagnosis)
+"""What state does the student's latent hold? Read-outs along D's windows
 
 Both models filter the same windows of D (the teacher on states, the student on images, the
 actions executed; open loop), and from each model's features (h and z) this fits, on

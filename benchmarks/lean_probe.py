@@ -1,4 +1,4 @@
-"""How fast does a CNN learn which way cartpole's pole leans? (issue 7 diagnosis)
+"""How fast does a CNN learn which way cartpole's pole leans?
 
 The balance task needs the student to read a one-pixel pole's lean from randomised 64x64
 images. This trains the student's CNN of ``--preset`` with a linear head to classify the sign

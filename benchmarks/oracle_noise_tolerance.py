@@ -1,4 +1,4 @@
-"""How precisely must a student know the state? The oracle on noisy states (issue 7 diagnosis)
+"""How precisely must a student know the state? The oracle on noisy states
 
 A distilled student acts well only if its latent carries what the teacher's actor reacts to,
 as precisely as the actor needs it. This measures that precision from the teacher alone: the

@@ -1,4 +1,4 @@
-"""The cartpole pole at small tilts, rendered plain and supersampled (issue 7 diagnosis).
+"""The cartpole pole at small tilts, rendered plain and supersampled.
 
 Renders cartpole-balance at pole angles 0, 0.03, 0.06 and 0.1 rad (cart centred), one row per
 (DR preset, supersample) in ``none``/``train`` x 1/2, with one fixed draw of DR parameters per

@@ -1,4 +1,4 @@
-"""Does a teacher world model learn how the action changes the reward? (issue 5 diagnosis)
+"""Does a teacher world model learn how the action changes the reward?
 
 On ``--episodes`` uniform-random episodes of cartpole-balance, compares three estimates of the
 one-step *action bonus* at given states -- the reward after action 0 minus the mean reward

@@ -1,4 +1,4 @@
-"""World-model update times on this machine (issue 4), each beside a naive baseline run in the
+"""World-model update times on this machine, each beside a naive baseline run in the
 same process.
 
 * ``teacher``: one full teacher update (state world model + actor-critic in imagination), and

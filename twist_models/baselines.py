@@ -1,4 +1,4 @@
-"""Offline image baselines trained from the same matching dataset D as the student (issue 7).
+"""Offline image baselines trained from the same matching dataset D as the student.
 
 * ``dreamer``: DreamerV2 on D's images: an image world model (reconstruction, reward, KL)
   with its own actor-critic in imagination; the paper's *Dreamer w/ DR* on the randomised

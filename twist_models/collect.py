@@ -260,7 +260,7 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # 100, train_every 5; 500K frames, eval every 10K frames.
     # Rendered anti-aliased (supersample 2), as dm_control's own 4x multisampled render is:
     # without it cartpole's pole breaks into stray pixels at 64x64 (docs/experiments.md,
-    # "Eleventh session"); the same holds for quick.
+    # anti-aliased renders); the same holds for quick.
     "paper": CollectConfig(model="paper", frames=500_000, eval_every=10_000, eval_episodes=10,
                            snapshot_every=100_000, prefill_frames=10_000, supersample=2),
     # CPU-sized teacher: the recipe that learned fastest on this 2-core machine
@@ -273,9 +273,9 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # overshooting trains what imagination uses.
     # The teacher learns for 60K frames (at 28K it had not learned to balance: it scored
     # below the zero-action floor of ~750; one run reached 993 at 56K; docs/experiments.md,
-    # "Tenth session"), then the best evaluated teacher acts frozen to 300K (~3 minutes): the
-    # student distilled from 300 episodes tracks the teacher's h far better than from 28
-    # (docs/experiments.md, "Ninth session").
+    # "Teacher learning"), then the best evaluated teacher acts frozen to 300K (~3 minutes):
+    # the student distilled from 300 episodes tracks the teacher's h far better than from 28
+    # (docs/experiments.md, the student short of data).
     "quick": CollectConfig(model="quick", frames=300_000, learn_frames=60_000, freeze_best=True,
                            supersample=2, eval_every=4_000, eval_episodes=3,
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,

@@ -786,7 +786,7 @@ class _Run:
     def _bundle(self, path: Path) -> Path:
         # Every snapshot is deployable too: the return need not rise with the updates (it fell
         # from 559 to 403 between 800 and 2,000 in one run while the latents kept improving;
-        # docs/experiments.md, "Thirteenth session"), so the update count is worth choosing
+        # docs/experiments.md, more updates), so the update count is worth choosing
         # by evaluating the snapshots on episodes other than the reported ones.
         if self.writes:
             info = {**self.data.spec.image_agent_info(), "dataset": str(self.dataset_path),
