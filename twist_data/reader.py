@@ -71,6 +71,11 @@ class _ZarrFrameReader:
         pass
 
 
+def rows_per_file(array: zarr.Array) -> int:
+    """Rows along axis 0 that one chunk file of ``array`` holds (a shard file for images)."""
+    return int(array.shards[0] if array.shards else array.chunks[0])
+
+
 class ShardReader:
     """Read-only view of one shard's committed episodes."""
 
@@ -205,7 +210,7 @@ class ShardReader:
         arr = self.array(key)
         if start >= stop or not (self.layout.checksums or key == "data/image"):
             return []
-        rows = int(arr.shards[0] if arr.shards else arr.chunks[0])  # images: one file per shard
+        rows = rows_per_file(arr)
         missing = []
         for c in range(start // rows, (stop - 1) // rows + 1):
             name = arr.metadata.encode_chunk_key((c,) + (0,) * (arr.ndim - 1))
@@ -223,7 +228,7 @@ class ShardReader:
         damaged = [(a, b, "its chunk file is missing") for a, b in
                    self.missing_chunks(key, start, stop)]
         missing = {a for a, _, _ in damaged}
-        rows = int(arr.shards[0] if arr.shards else arr.chunks[0])
+        rows = rows_per_file(arr)
         for c in range(start // rows, (stop - 1) // rows + 1):
             a, b = max(start, c * rows), min(stop, (c + 1) * rows)
             if a in missing:

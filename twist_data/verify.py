@@ -16,7 +16,7 @@ import numpy as np
 import zarr
 
 from twist_data.errors import DatasetCorruptError, TwistError
-from twist_data.reader import ShardReader, find_shards
+from twist_data.reader import ShardReader, find_shards, rows_per_file
 from twist_data.schema import (
     EPISODE_COLUMNS,
     Episode,
@@ -79,7 +79,7 @@ def _verify_images(shard: ShardReader, problem: Callable[..., None],
     so that each damaged episode is named with its damaged steps."""
     arr, n, views = shard.array("data/image"), shard.n_steps, shard.spec.views
     missing = dict(shard.missing_chunks("data/image", 0, n))
-    per_file = int(arr.shards[0])
+    per_file = rows_per_file(arr)
     for a in range(0, n, per_file):
         b = min(a + per_file, n)
         if a in missing:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 import logging
 import os
@@ -78,8 +79,8 @@ from twist_models.frame_targets import (
 )
 from twist_models.losses import (
     action_matching_loss,
-    categorical_kl,
     distillation_loss,
+    frame_posterior_loss,
     imagined_distillation_loss,
 )
 from twist_models.runlog import (
@@ -296,12 +297,16 @@ def distil_preset(name: str, recipe: str = "paper", **overrides: Any) -> DistilC
 
 
 # -- one update ---------------------------------------------------------------------------------
+@functools.cache
+def _cpu_has_bfloat16() -> bool:
+    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
 def encoder_autocast(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
     """The context the student's CNN trains in: bfloat16 autocast for ``bfloat16``, and for
     ``auto`` where the device computes bfloat16 natively; otherwise nothing."""
     if precision == "auto":
-        native = (device.type == "cuda"
-                  or (device.type == "cpu" and torch.ops.mkldnn._is_mkldnn_bf16_supported()))
+        native = device.type == "cuda" or (device.type == "cpu" and _cpu_has_bfloat16())
         precision = "bfloat16" if native else "float32"
     if precision == "bfloat16":
         return torch.autocast(device.type, dtype=torch.bfloat16)
@@ -443,8 +448,8 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
         s_post, t_post, terms, embed = objective.filter(batch)
         imagined = objective.imagined_terms(s_post, t_post)
         frames = frame_agreement(student, teacher, embed, t_post["deter"], batch["state"])
-        frame_kl = categorical_kl(student.rssm.posterior_logits(t_post["deter"], embed),
-                                  t_post["logits"]).mean()
+        frame_kl = frame_posterior_loss(student.rssm.posterior_logits(t_post["deter"], embed),
+                                        t_post["logits"])
     deter = student.config.rssm.deter
     h_mse = float(terms["h"]) / deter
     # An h-MSE means little without the scale of the teacher's h (on cartpole its variance is
