@@ -39,8 +39,9 @@ def main(
     preset: Annotated[str, typer.Option(
         help=f"Sizes and schedule: {', '.join(COLLECT_PRESETS)}; a resumed run keeps its "
              "own.")] = "quick",
-    steps: Annotated[int | None, typer.Option(
-        help="Environment frames to collect (default: the preset's).")] = None,
+    frames: Annotated[int | None, typer.Option(
+        help="Environment frames to collect, learning and frozen (default: the preset's).")
+    ] = None,
     views: Annotated[int | None, typer.Option("--views", help="K renders per step [2].")] = None,
     image_size: Annotated[int | None, typer.Option(help="Render side in pixels [64].")] = None,
     dr: Annotated[str | None, typer.Option(help="DR preset of the renders [train].")] = None,
@@ -60,14 +61,14 @@ def main(
     """Train a DreamerV2 teacher on privileged state while recording K randomised renders of
     every step it takes into a matching dataset, crash-safe and resumable."""
     name = shard_name(shard)
-    overrides = {"task": task, "frames": steps, "views": views, "image_size": image_size,
+    overrides = {"task": task, "frames": frames, "views": views, "image_size": image_size,
                  "dr": dr, "backgrounds": None if backgrounds is None else str(backgrounds),
                  "seed": seed}
     given = {k: v for k, v in overrides.items() if v is not None}
     given.update(parse_settings(settings or [], CollectConfig))
     if resume and (run_dir(out_dir, name) / "config.json").exists():
         # A resumed run keeps its stored config; flags given again must agree with it
-        # (collect() refuses any difference but --steps).
+        # (collect() refuses any difference but --frames).
         config = dataclasses.replace(stored_config(out_dir, name), **given)
     else:
         config = collect_preset(preset, **given)

@@ -36,14 +36,14 @@ def main(
     preset: Annotated[str, typer.Option(
         help=f"Student sizes and schedule: {', '.join(DISTIL_PRESETS)}.")] = "quick",
     recipe: Annotated[str, typer.Option(
-        help=f"Distillation recipe: {', '.join(RECIPES)} (README, 'Recipes').")
+        help=f"Distillation recipe: {', '.join(RECIPES)} (docs/design.md, 'Recipes').")
     ] = "paper",
     steps: Annotated[int | None, typer.Option(help="Student updates.")] = None,
-    batch: Annotated[int | None, typer.Option(help="Windows per update [16].")] = None,
-    length: Annotated[int | None, typer.Option(help="Steps per window L [50].")] = None,
-    horizon: Annotated[int | None, typer.Option(help="Imagined steps H of Eq. 4 [15].")] = None,
+    batch: Annotated[int | None, typer.Option(help="Windows per update [the preset's].")] = None,
+    length: Annotated[int | None, typer.Option(help="Steps per window L [the preset's].")] = None,
+    horizon: Annotated[int | None, typer.Option(help="Imagined steps H of Eq. 4 [the preset's].")] = None,
     action_noise: Annotated[float | None, typer.Option(
-        help="Std of the noise on the teacher's imagined actions [0.3].")] = None,
+        help="Std of the noise on the teacher's imagined actions [the preset's].")] = None,
     no_imagined: Annotated[bool, typer.Option(
         "--no-imagined", help="Ablation: train without imagined distillation (Eq. 4).")] = False,
     scratch_dynamics: Annotated[bool, typer.Option(
@@ -51,7 +51,7 @@ def main(
                                    "paper [from the teacher's].")] = False,
     view: Annotated[int | None, typer.Option(
         help="Use this camera view only [a random view per step].")] = None,
-    workers: Annotated[int | None, typer.Option(help="Data-loading processes [1].")] = None,
+    workers: Annotated[int | None, typer.Option(help="Data-loading processes [the preset's].")] = None,
     seed: Annotated[int | None, typer.Option(help="Run seed [0].")] = None,
     device: Annotated[str, typer.Option(help="torch device (cuda under torchrun: one per "
                                              "rank).")] = "cpu",

@@ -107,7 +107,7 @@ def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> 
 
 def test_sigkilled_cli_run_resumes_without_duplicates_or_losses(tmp_path: Path) -> None:
     out = tmp_path / "D"
-    args = [*COLLECT, "--out", str(out), "--preset", "tiny", "--steps", "800", "--quiet"]
+    args = [*COLLECT, "--out", str(out), "--preset", "tiny", "--frames", "800", "--quiet"]
     shard = out / "collect-000.zarr"
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -232,7 +232,7 @@ def test_behaviour_overrides_reach_the_teacher_config() -> None:
 def test_world_model_warms_up_alone_before_behaviour_learning(tmp_path: Path) -> None:
     base = collect_preset("tiny", frames=300)
     warmup = base.updates_due(200)  # the actor-critic joins after the second episode's updates
-    done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--preset", "tiny", "--steps", "300",
+    done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--preset", "tiny", "--frames", "300",
                            "--set", f"behaviour_from={warmup}", "--quiet"],
                           capture_output=True, text=True)
     assert done.returncode == 0, done.stderr

@@ -508,7 +508,7 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
         extendable = ("frames", "learn_frames", "freeze_best", "frozen_noise", "push_every",
                       "push_steps", "student")
         refuse_resume(resume_conflicts(before, config, extendable), CollectError,
-                      "--steps and --set " + ", ".join(extendable[1:]))
+                      "--frames and --set " + ", ".join(extendable[1:]))
 
 
 class _Run:
