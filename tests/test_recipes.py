@@ -32,6 +32,7 @@ from twist_models.frame_targets import (
     actor_sensitivity,
     frame_agreement,
     frame_terms,
+    teacher_latent_before,
     teacher_targets,
 )
 from twist_models.losses import frame_posterior_loss, weighted_state_loss
@@ -199,6 +200,62 @@ def test_frame_agreement_is_perfect_for_a_student_reading_the_teachers_posterior
     assert same["frame_action_rmse"] == pytest.approx(0.0, abs=1e-6)
     assert same["frame_action_corr"] == pytest.approx(1.0, abs=1e-5)
     assert other["frame_action_rmse"] > 1e-4
+
+
+def test_windows_start_from_the_teachers_latent_before_them(
+        inputs: tuple[Path, Path, Teacher]) -> None:
+    dataset, _, teacher = inputs
+    data = open_dataset(dataset)
+    episodes = np.array([1, 4])
+    targets = teacher_targets(teacher, data, episodes, read="mean")
+    first = int(data.episode_starts[4])
+    starts = np.array([first + 7, first, int(data.episode_starts[1]) + 3])
+    torch.manual_seed(0)
+    start = teacher_latent_before(teacher, targets, starts)
+    row = int(np.flatnonzero(targets.steps == first + 6)[0])
+    assert torch.equal(start["deter"][0], targets.deter[row])
+    # z is a one-hot draw from the teacher's posterior at that h and state.
+    wm = teacher.world_model
+    logits = wm.rssm.posterior_logits(targets.deter[row], wm.embed(targets.state[row]))
+    drawn = start["stoch"][0].argmax(-1)
+    one_hot = torch.nn.functional.one_hot(drawn, logits.shape[-1]).float()
+    assert torch.allclose(start["stoch"][0], one_hot, atol=1e-6)
+    assert torch.all(torch.softmax(logits, -1).gather(-1, drawn[:, None]) > 0)
+    # An episode's first step starts from zeros (the filter resets there anyway).
+    assert not start["deter"][1].any() and not start["stoch"][1].any()
+    with pytest.raises(ValueError, match="not a step"):
+        teacher_latent_before(teacher, targets, np.array([int(data.episode_starts[0]) + 2]))
+
+
+def test_a_window_from_the_teachers_latent_continues_its_filter(
+        inputs: tuple[Path, Path, Teacher]) -> None:
+    dataset, _, teacher = inputs
+    data = open_dataset(dataset)
+    config = distil_preset("tiny", "dense", window_start="teacher", filter_read="mean")
+    targets = teacher_targets(teacher, data, np.arange(data.n_episodes), read="mean")
+    from twist_data.sampler import WindowSampler
+
+    windows = WindowSampler(data, config.sampler("all", 0)).batch()
+    batch = {k: torch.as_tensor(windows[k]) for k in ("image", "state", "action", "is_first")}
+    start = teacher_latent_before(teacher, targets, windows["start"])
+    batch.update(start_deter=start["deter"], start_stoch=start["stoch"])
+    student = Student(student_preset("tiny", teacher.config, 64, norm="layer", state_head=True))
+    objective = Distillation(student, teacher, config, targets.scale)
+    with torch.no_grad():
+        _, t_post, _, _ = objective.filter(batch)
+    # The teacher's first h is its GRU on the start latent, so the window follows its filter
+    # from the episode's start, not from h = 0.
+    rssm = teacher.world_model.rssm
+    mid = ~batch["is_first"][:, 0]
+    assert mid.any()
+    expected = rssm._deter({"deter": start["deter"], "stoch": start["stoch"]},
+                           batch["action"][:, 0])
+    assert torch.allclose(t_post["deter"][mid, 0], expected[mid], atol=1e-5)
+    with torch.no_grad():
+        _, zero_post, _, _ = Distillation(student, teacher, dataclasses.replace(
+            config, window_start="zero"), targets.scale).filter(
+            {k: v for k, v in batch.items() if not k.startswith("start_")})
+    assert not torch.allclose(zero_post["deter"][mid, 0], expected[mid], atol=1e-3)
 
 
 def test_the_recipe_travels_with_the_run_and_the_bundle(

@@ -75,6 +75,7 @@ from twist_models.frame_targets import (
     actor_sensitivity,
     frame_agreement,
     frame_terms,
+    teacher_latent_before,
     teacher_targets,
 )
 from twist_models.losses import (
@@ -97,6 +98,7 @@ log = logging.getLogger(__name__)
 
 KEYS = ("image", "state", "action", "is_first")
 PRECISIONS = ("float32", "bfloat16", "auto")
+WINDOW_STARTS = ("zero", "teacher")
 TERMS = ("h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl", "action",
          "frame_post_kl", "state")
 METRIC_COLUMNS = ("updates", "wall_s", "updates_per_s", "data_wait_share", "loss", *TERMS,
@@ -163,6 +165,11 @@ class DistilConfig:
     action_weight: float = 0.0
     """Weight of the action-matching term: the teacher's actor on the student's posterior
     against it on the teacher's (not in the paper; 0: the paper's objective)."""
+    window_start: str = "zero"
+    """Latent both filters start each training window from: ``zero`` (the paper's: h = 0,
+    z = 0 mid-episode) or ``teacher`` (the teacher's own latent at the step before, filtered
+    from the episode's start: the student learns to stay on the teacher's long-run path
+    rather than to recover from h = 0; not in the paper). Held-out windows start from zero."""
     frames: int = 1
     """Images the student's posterior reads per step, each encoded alone: the current one and
     the ``frames - 1`` before it (1: the paper's single image; 2 shows it motion)."""
@@ -231,6 +238,7 @@ class DistilConfig:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
         require_choice(self, "precision", PRECISIONS)
+        require_choice(self, "window_start", WINDOW_STARTS)
         # The mode has no gradient to train the student's posterior through.
         require_choice(self, "filter_read", ("sample", "mean"))
         if self.view is not None and self.view < 0:
@@ -371,17 +379,20 @@ class Distillation(nn.Module):
         from the same draws when shared) and the Eq. 3 terms: (student posterior, teacher
         posterior, terms, the student's posterior input [B, L, E'])."""
         action, is_first = batch["action"], batch["is_first"]
+        # Windows may start from the teacher's latent before them (``window_start``).
+        start = ({"deter": batch["start_deter"], "stoch": batch["start_stoch"]}
+                 if "start_deter" in batch else None)
         post_draws = None
         if self.config.shared_draws:
             post_draws = draws(action.shape[:2], self.student.config.rssm.stoch, action.device)
         with torch.no_grad():
             wm = self.teacher.world_model
             t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
-                                              uniform=post_draws, read=self.config.filter_read)
+                                              start, post_draws, self.config.filter_read)
         with encoder_autocast(self.config.precision, is_first.device):
             embed = self.student.embed(batch["image"], is_first).float()
-        s_post, s_prior = self.student.rssm.observe(embed, action, is_first, uniform=post_draws,
-                                                    read=self.config.filter_read)
+        s_post, s_prior = self.student.rssm.observe(embed, action, is_first, start, post_draws,
+                                                    self.config.filter_read)
         terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
         return s_post, t_post, terms, embed
 
@@ -484,11 +495,11 @@ class DistilSummary:
     teacher: Path
     updates: int
     seconds: float
-    """Wall time of the run (all sessions of a resumed run), evaluation included."""
+    """Wall time of the run (every invocation of a resumed run), evaluation included."""
     updates_per_second: float
-    """Updates per second of training time (data wait + update) in this session."""
+    """Updates per second of training time (data wait + update) since this invocation started."""
     data_wait_share: float
-    """Share of this session's training time spent waiting for data."""
+    """Share of this invocation's training time spent waiting for data."""
     heldout_first: dict[str, float]
     heldout_last: dict[str, float]
 
@@ -603,7 +614,8 @@ class _Run:
             freeze_dynamics(self.student)
         self.student.to(device)
         move_optimiser_state(self.optimiser, device)
-        self.targets = self._teacher_targets() if config.frame_terms else None
+        self.targets = (self._teacher_targets()
+                        if config.frame_terms or config.window_start == "teacher" else None)
         self.objective: nn.Module = Distillation(
             self.student, self.teacher, config,
             self.targets.scale if self.targets is not None else 1.0)
@@ -654,6 +666,13 @@ class _Run:
             raise DistilError(f"no training windows: {exc}") from None
         return iter(loader)
 
+    def _window_batch(self, windows: Mapping[str, Any]) -> dict[str, torch.Tensor]:
+        batch = _to_device(windows, self.device)
+        if self.config.window_start == "teacher":
+            start = teacher_latent_before(self.teacher, self.targets, np.asarray(windows["start"]))
+            batch.update(start_deter=start["deter"], start_stoch=start["stoch"])
+        return batch
+
     def evaluate(self) -> dict[str, float]:
         self.student.eval()
         metrics = latent_agreement(self.student, self.teacher, self.heldout, self.config,
@@ -687,7 +706,7 @@ class _Run:
         wall = time.perf_counter()
         while self.updates < c.steps:
             tick = time.perf_counter()
-            batch = _to_device(next(windows), self.device)
+            batch = self._window_batch(next(windows))
             waited = time.perf_counter() - tick
             loss, terms = self.objective(batch)
             self.optimiser.zero_grad(set_to_none=True)

@@ -33,6 +33,7 @@ from torch.nn import functional as F
 
 from twist_data.reader import MatchingDataset
 from twist_models.losses import frame_posterior_loss, weighted_state_loss
+from twist_models.rssm import State, sample_one_hot
 from twist_models.student import Student
 from twist_models.teacher import Teacher
 
@@ -119,6 +120,28 @@ def teacher_targets(teacher: Teacher, data: MatchingDataset, episodes: np.ndarra
     return TeacherTargets(steps=rows.astype(np.int64),
                           episode_start=np.repeat(starts, lengths).astype(np.int64),
                           state=state, deter=deter, sensitivity=raw / scale, scale=scale)
+
+
+@torch.no_grad()
+def teacher_latent_before(teacher: Teacher, targets: TeacherTargets, starts: np.ndarray
+                          ) -> State:
+    """The teacher's latent at the step before each of ``starts`` (global steps [B] of
+    training episodes): its h there from ``targets`` and z drawn from its posterior at that h
+    and state -> {``deter`` [B, D], ``stoch`` [B, S, C]}; zeros for a start that is its
+    episode's first step (the filter resets there anyway)."""
+    rows = np.searchsorted(targets.steps, starts)
+    found = (rows < len(targets)) & (targets.steps[np.minimum(rows, len(targets) - 1)] == starts)
+    if not found.all():
+        raise ValueError(f"window start {int(starts[~found][0])} is not a step of the "
+                         "episodes the teacher's targets cover")
+    first = torch.as_tensor(targets.episode_start[rows] == starts, device=targets.deter.device)
+    before = torch.as_tensor(np.maximum(rows - 1, 0), device=targets.deter.device)
+    wm = teacher.world_model
+    deter = targets.deter[before]
+    logits = wm.rssm.posterior_logits(deter, wm.embed(targets.state[before]))
+    stoch = sample_one_hot(logits)
+    keep = (~first).to(deter.dtype)
+    return {"deter": deter * keep[:, None], "stoch": stoch * keep[:, None, None]}
 
 
 class FrameBatches:
