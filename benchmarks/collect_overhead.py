@@ -36,8 +36,9 @@ from twist_data.render_process import RenderProcess
 from twist_data.rollout import random_policy, record_episode, simulated_spec
 from twist_data.tasks import TaskEnv
 from twist_data.writer import ShardWriter
-from twist_models.collect import collect_preset, teacher_policy
 from twist_models.networks import single_threaded
+from twist_models.policies import teacher_policy
+from twist_models.stages.collect import collect_preset
 from twist_models.teacher import Teacher
 
 TARGET = 250.0

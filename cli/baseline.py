@@ -10,9 +10,9 @@ from typing import Annotated
 import typer
 
 from twist_cli.common import new_app, out, progress_bar, run_app
-from twist_models.baselines import KINDS, BaselineConfig, train_baseline
-from twist_models.baselines import Progress as BaselineProgress
 from twist_models.device import resolve_device
+from twist_models.stages.baselines import KINDS, BaselineConfig, train_baseline
+from twist_models.stages.baselines import Progress as BaselineProgress
 
 app = new_app()
 

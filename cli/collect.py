@@ -12,7 +12,8 @@ import typer
 
 from twist_cli.common import new_app, out, parse_settings, progress_bar, run_app
 from twist_data.tasks import DEFAULT_TASK
-from twist_models.collect import (
+from twist_models.device import resolve_device
+from twist_models.stages.collect import (
     COLLECT_PRESETS,
     CollectConfig,
     collect,
@@ -20,8 +21,7 @@ from twist_models.collect import (
     run_dir,
     stored_config,
 )
-from twist_models.collect import Progress as CollectProgress
-from twist_models.device import resolve_device
+from twist_models.stages.collect import Progress as CollectProgress
 
 app = new_app()
 

@@ -12,7 +12,7 @@ import typer
 
 from twist_cli.common import new_app, out, parse_settings, progress_bar, run_app
 from twist_models.device import resolve_device
-from twist_models.distill import (
+from twist_models.stages.distill import (
     DISTIL_PRESETS,
     RECIPES,
     DistilConfig,
@@ -21,7 +21,7 @@ from twist_models.distill import (
     initialise_distributed,
     stored_config,
 )
-from twist_models.distill import Progress as DistilProgress
+from twist_models.stages.distill import Progress as DistilProgress
 
 app = new_app()
 

@@ -14,7 +14,8 @@ from rich.table import Table
 from twist_cli.common import new_app, out, parse_list, run_app
 from twist_data.errors import ConfigError
 from twist_data.tasks import DEFAULT_ACTION_REPEAT
-from twist_models.evaluation import (
+from twist_models.rssm import require_posterior_read
+from twist_models.stages.evaluation import (
     EvalAgent,
     EvalConfig,
     StateAgent,
@@ -23,7 +24,6 @@ from twist_models.evaluation import (
     load_agent,
     run_evaluation,
 )
-from twist_models.rssm import require_posterior_read
 from twist_models.statistics import format_paired
 
 app = new_app()

@@ -10,13 +10,6 @@ import torch
 from twist_data.sampler import SamplerConfig, WindowSampler
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
-from twist_models.baselines import (
-    KEYS,
-    BaselineConfig,
-    BaselineError,
-    behaviour_config,
-    train_baseline,
-)
 from twist_models.checkpoint import read_checkpoint
 from twist_models.config import (
     ActorCriticConfig,
@@ -25,7 +18,14 @@ from twist_models.config import (
     from_json,
     to_json,
 )
-from twist_models.teacher import Dreamer
+from twist_models.dreamer import Dreamer
+from twist_models.stages.baselines import (
+    KEYS,
+    BaselineConfig,
+    BaselineError,
+    behaviour_config,
+    train_baseline,
+)
 
 
 @pytest.fixture(scope="module")

@@ -20,21 +20,21 @@ import torch
 import zarr
 
 from twist_data.errors import ConfigError, UnknownTaskError
-from twist_data.randomisation import derived_seed
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.schema import ATTRS_KEY
+from twist_data.seeding import derived_seed
 from twist_data.tasks import Dynamics, TaskEnv
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
 from twist_models.checkpoint import read_checkpoint
-from twist_models.collect import (
+from twist_models.policies import Pushes
+from twist_models.stages.collect import (
     CollectError,
-    Pushes,
     collect,
     collect_preset,
     shard_seed,
 )
-from twist_models.evaluation import load_agent
+from twist_models.stages.evaluation import load_agent
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, find_teacher, load_teacher
 
 pytestmark = pytest.mark.usefixtures("gl")

@@ -17,7 +17,7 @@ from twist_data.errors import ConfigError
 from twist_data.tasks import TaskEnv
 from twist_models.agent import Agent
 from twist_models.config import AgentConfig, student_preset, teacher_preset
-from twist_models.evaluation import (
+from twist_models.stages.evaluation import (
     EvalConfig,
     EvalError,
     ScriptedAgent,

@@ -16,7 +16,7 @@ import pytest
 
 from twist_data.errors import ConfigError, UnknownTaskError
 from twist_data.reader import open_dataset
-from twist_models.report import (
+from twist_models.stages.report import (
     AGENTS,
     EPISODE_RESULT_COLUMNS,
     RESULT_COLUMNS,

@@ -207,11 +207,6 @@ def stack_view_params(per_step: list[dict[str, np.ndarray]]) -> dict[str, np.nda
     return {p.name: np.stack([step[p.name] for step in per_step]) for p in VIEW_PARAMS}
 
 
-def derived_seed(*keys: int) -> int:
-    """A well-mixed 32-bit seed from integer keys, e.g. (run seed, episode index)."""
-    return int(np.random.SeedSequence(list(keys)).generate_state(1)[0])
-
-
 def dynamics_params(dynamics: Dynamics) -> dict[str, np.ndarray]:
     """The ``meta/dr`` values of an episode's dynamics."""
     return {"friction_scale": np.float32(dynamics.friction_scale),

@@ -19,11 +19,12 @@ from typing import Any
 import numpy as np
 
 from twist_data.errors import ConfigError, SchemaMismatchError
-from twist_data.randomisation import VIEW_PARAMS, DRConfig, derived_seed, stack_view_params
+from twist_data.randomisation import VIEW_PARAMS, DRConfig, stack_view_params
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.render import DRRenderer
 from twist_data.rollout import library_versions
 from twist_data.schema import DatasetSpec, Episode
+from twist_data.seeding import derived_seed
 from twist_data.storage import StorageLayout
 from twist_data.writer import ShardWriter
 

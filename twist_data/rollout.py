@@ -22,12 +22,12 @@ from twist_data.randomisation import (
     VIEW_PARAMS,
     DRConfig,
     DRSampler,
-    derived_seed,
     dynamics_params,
     stack_view_params,
 )
 from twist_data.render import DRRenderer, FrameRenderer
 from twist_data.schema import DatasetSpec, Episode, EpisodeInfo
+from twist_data.seeding import derived_seed
 from twist_data.tasks import DEFAULT_ACTION_REPEAT, Step, TaskEnv
 from twist_data.writer import ShardWriter
 

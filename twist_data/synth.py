@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from twist_data.randomisation import derived_seed
 from twist_data.schema import DatasetSpec, Episode, EpisodeInfo, ParamSpec
+from twist_data.seeding import derived_seed
 from twist_data.storage import StorageLayout
 from twist_data.writer import ShardWriter
 

@@ -11,20 +11,17 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
 
 from twist_data.errors import CheckpointError, CheckpointMismatchError
-from twist_models.actor_critic import ActorCritic
 from twist_models.checkpoint import (
     Checkpoint,
-    move_optimiser_state,
     read_checkpoint,
     restore,
     save_checkpoint,
 )
-from twist_models.config import DreamerConfig, TeacherConfig, from_json
+from twist_models.config import TeacherConfig, from_json
+from twist_models.dreamer import Dreamer
 from twist_models.rssm import State
-from twist_models.world_model import WorldModel
 
 #: The final teacher's file name in a collector's run folder (what ``twist-distil`` finds).
 FINAL_TEACHER = "teacher.pt"
@@ -32,50 +29,6 @@ FINAL_TEACHER = "teacher.pt"
 #: evaluations swing by hundreds between neighbouring points (docs/experiments.md,
 #: "Teacher learning"), so the last teacher is not always the one to distil from.
 BEST_TEACHER = "best.pt"
-
-
-class Dreamer(nn.Module):
-    """A world model (on state or images) + actor-critic in imagination, DreamerV2."""
-
-    def __init__(self, config: DreamerConfig) -> None:
-        super().__init__()
-        self.config = config
-        wm = config.world_model
-        self.world_model = WorldModel(wm)
-        self.actor_critic = ActorCritic(wm.rssm.feature_dim, wm.action_dim, config.actor_critic,
-                                        config.optim)
-        self.model_opt = torch.optim.AdamW(self.world_model.parameters(), wm.model_lr,
-                                           eps=config.optim.eps,
-                                           weight_decay=config.optim.weight_decay)
-        self.register_buffer("step", torch.zeros((), dtype=torch.int64))
-
-    def to_device(self, device: torch.device | str) -> Dreamer:
-        """Move weights and optimiser moments to ``device``."""
-        self.to(device)
-        for optimiser in self.optimisers().values():
-            move_optimiser_state(optimiser, device)
-        return self
-
-    def optimisers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"model": self.model_opt, "actor": self.actor_critic.actor_opt,
-                "critic": self.actor_critic.critic_opt}
-
-    def train_step(self, batch: dict[str, torch.Tensor], behaviour: bool = True
-                   ) -> dict[str, float]:
-        """Update the world model on ``batch`` ({k: [B, T, ...]}: state or image, action,
-        reward, is_first, ...), then, with ``behaviour``, the actor-critic from imagination
-        started at the posterior states. Returns scalar metrics."""
-        loss, post, metrics = self.world_model.loss(batch)
-        self.model_opt.zero_grad(set_to_none=True)
-        loss.backward()
-        metrics["model_grad_norm"] = nn.utils.clip_grad_norm_(self.world_model.parameters(),
-                                                              self.config.optim.grad_clip)
-        self.model_opt.step()
-        if behaviour:
-            start = {k: v.detach().flatten(0, 1) for k, v in post.items()}
-            metrics.update(self.actor_critic.train_step(self.world_model, start))
-        self.step += 1
-        return {k: float(v) for k, v in metrics.items()}
 
 
 class Teacher(Dreamer):

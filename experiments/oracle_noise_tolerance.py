@@ -20,7 +20,7 @@ less, or because it sees less?
 probabilities (or most likely classes) instead of a sample.
 
 Prints one JSON line: the mean return per setting. ``python
-benchmarks/oracle_noise_tolerance.py TEACHER --noise 2:0.035 --noise 4:0.2 [--read mean]
+experiments/oracle_noise_tolerance.py TEACHER --noise 2:0.035 --noise 4:0.2 [--read mean]
 [--exact] [--episodes 5]``
 """
 
@@ -34,7 +34,7 @@ import json
 import numpy as np
 
 from twist_data.tasks import Step
-from twist_models.evaluation import EvalConfig, StateAgent, evaluate, load_agent
+from twist_models.stages.evaluation import EvalConfig, StateAgent, evaluate, load_agent
 
 
 class NoisyStateAgent:

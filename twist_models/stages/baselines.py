@@ -29,9 +29,9 @@ import torch
 from torch.utils.data import DataLoader
 
 from twist_data.errors import ConfigError, TwistError
-from twist_data.randomisation import derived_seed
 from twist_data.reader import open_dataset
 from twist_data.sampler import SamplerConfig, WindowDataset
+from twist_data.seeding import derived_seed
 from twist_models.agent import Agent
 from twist_models.checkpoint import read_checkpoint, restore, save_checkpoint
 from twist_models.config import (
@@ -47,8 +47,8 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.device import resolve_device
-from twist_models.runlog import append_csv, prepare_output, refuse_resume, resume_conflicts
-from twist_models.teacher import Dreamer
+from twist_models.dreamer import Dreamer
+from twist_models.stages.runlog import append_csv, prepare_output, refuse_resume, resume_conflicts
 
 log = logging.getLogger(__name__)
 

@@ -28,16 +28,17 @@ import torch
 
 from twist_data.errors import ConfigError, TwistError
 from twist_data.export import episode_strip, write_video
-from twist_data.randomisation import DR_PRESETS, DRConfig, derived_seed, dr_preset
+from twist_data.randomisation import DR_PRESETS, DRConfig, dr_preset
 from twist_data.render import DRRenderer
+from twist_data.seeding import derived_seed
 from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Step, TaskEnv, task_spec
 from twist_models.agent import Agent, AgentState
 from twist_models.checkpoint import read_checkpoint
-from twist_models.collect import teacher_policy
 from twist_models.config import require_positive
 from twist_models.curves import plot_returns
 from twist_models.device import resolve_device
 from twist_models.networks import single_threaded
+from twist_models.policies import teacher_policy
 from twist_models.rssm import require_posterior_read
 from twist_models.statistics import PairedDifference, paired_difference, stratified_bootstrap
 from twist_models.teacher import Teacher, teacher_from_checkpoint

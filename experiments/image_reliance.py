@@ -11,7 +11,7 @@ over all steps and over the second half of each window. A student that reads the
 loses much of its agreement when the images are wrong; one that does not has learned to
 follow its h (and through it the teacher's past actions) instead.
 
-Prints one JSON line per condition. ``python benchmarks/image_reliance.py DATASET RUN
+Prints one JSON line per condition. ``python experiments/image_reliance.py DATASET RUN
 TEACHER [--windows 64] [--length 50]`` (RUN: a ``twist-distil`` output folder).
 """
 
@@ -26,7 +26,7 @@ import torch
 
 from twist_data.reader import open_dataset
 from twist_data.sampler import WindowSampler
-from twist_models.distill import Distillation, load_student, stored_config
+from twist_models.stages.distill import Distillation, load_student, stored_config
 from twist_models.teacher import Teacher, load_teacher
 
 Batch = dict[str, torch.Tensor]

@@ -45,9 +45,9 @@ from torch import nn
 from torch.utils.data import DataLoader
 
 from twist_data.errors import ConfigError, TwistError
-from twist_data.randomisation import derived_seed
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.sampler import SamplerConfig, WindowDataset, WindowSampler, heldout_episodes
+from twist_data.seeding import derived_seed
 from twist_models.agent import Agent
 from twist_models.checkpoint import (
     move_optimiser_state,
@@ -84,7 +84,7 @@ from twist_models.losses import (
     frame_posterior_loss,
     imagined_distillation_loss,
 )
-from twist_models.runlog import (
+from twist_models.stages.runlog import (
     Board,
     append_csv,
     prepare_output,

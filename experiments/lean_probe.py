@@ -9,7 +9,7 @@ batches of ``--batch`` random frames and views, and reports held-out accuracy ev
 baseline; ``layer``: ``CNNConfig.norm="layer"``). Held-out frames come from every
 ``--holdout-every``-th episode, as in ``twist-distil``.
 
-Prints one JSON line. ``python benchmarks/lean_probe.py DATASET [--steps 800]``
+Prints one JSON line. ``python experiments/lean_probe.py DATASET [--steps 800]``
 """
 
 from __future__ import annotations
@@ -21,13 +21,19 @@ import time
 
 import numpy as np
 import torch
-from image_state_probe import frames  # this folder's sibling script
 from torch.nn import functional
 
-from twist_data.reader import open_dataset
+from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.config import CNN_NORMS, PRESETS, CNNConfig
 from twist_models.networks import ImageEncoder
+
+
+def frames(data: MatchingDataset, steps: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
+    """D's frames at ``steps``, each from a random one of its views: uint8 [N, H, W, 3]."""
+    out = np.empty((steps.size, *data.spec.image_shape), np.uint8)
+    data.read_frames(steps, rng.integers(0, data.spec.views, steps.size), out)
+    return torch.as_tensor(out)
 
 
 def main() -> None:

@@ -1,0 +1,11 @@
+"""Seeds derived from a run's seed: one mixing rule for every stage, so that (run seed,
+episode), (run seed, purpose, rank) and the like never collide or correlate."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def derived_seed(*keys: int) -> int:
+    """A well-mixed 32-bit seed from integer keys, e.g. (run seed, episode index)."""
+    return int(np.random.SeedSequence(list(keys)).generate_state(1)[0])
