@@ -177,6 +177,22 @@ class FrameCache:
         self._next = int((self._next + keep) % self.capacity)
 
 
+def window_problem(dataset: MatchingDataset, length: int, view: int | None) -> str | None:
+    """Why windows of ``length`` steps showing ``view`` (None: any) cannot be drawn from
+    ``dataset`` at all, in one sentence; None when they can. The one check behind every
+    command that samples windows (a split may still leave too few: see WindowSampler)."""
+    spec = dataset.spec
+    if view is not None and not 0 <= view < spec.views:
+        return (f"view index {view} is out of range: the dataset has {spec.views} views "
+                f"(valid: 0..{spec.views - 1})")
+    lengths = dataset.episode_lengths
+    longest = int(lengths.max()) if lengths.size else 0
+    if length > longest:
+        return (f"window length {length} is longer than every episode (the longest has "
+                f"{longest} steps)")
+    return None
+
+
 class WindowSampler:
     """Draws batches of windows from a dataset; one of ``n_streams`` disjoint streams.
 
@@ -194,11 +210,9 @@ class WindowSampler:
             raise SamplerConfigError(f"stream {stream} is out of range for {n_streams} streams")
         self.stream, self.n_streams = stream, n_streams
         spec = self.dataset.spec
-        if config.view is not None and config.view >= spec.views:
-            raise SamplerConfigError(
-                f"view index {config.view} is out of range: the dataset has {spec.views} views "
-                f"(valid: 0..{spec.views - 1})"
-            )
+        problem = window_problem(self.dataset, config.length, config.view)
+        if problem is not None and not problem.startswith("window length"):
+            raise SamplerConfigError(problem)  # the length is checked per split below
         self._per_view = {a.name: a.per_view for a in step_arrays(spec)}
         unknown = [k for k in config.keys if k not in self._per_view]
         if unknown:

@@ -46,7 +46,13 @@ from torch.utils.data import DataLoader
 
 from twist_data.errors import ConfigError, TwistError
 from twist_data.reader import MatchingDataset, open_dataset
-from twist_data.sampler import SamplerConfig, WindowDataset, WindowSampler, heldout_episodes
+from twist_data.sampler import (
+    SamplerConfig,
+    WindowDataset,
+    WindowSampler,
+    heldout_episodes,
+    window_problem,
+)
 from twist_data.seeding import derived_seed
 from twist_models.agent import Agent
 from twist_models.checkpoint import (
@@ -537,9 +543,9 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
     if spec.views < 1 or spec.image_height < 1:
         raise DistilError(f"dataset {str(path)!r} has no images (views={spec.views}); the "
                           "student learns from images")
-    if config.view is not None and config.view >= spec.views:
-        raise DistilError(f"view {config.view} is out of range: the dataset has {spec.views} "
-                          f"views (0..{spec.views - 1})")
+    problem = window_problem(data, config.length, config.view)
+    if problem is not None:
+        raise DistilError(f"{str(path)!r}: {problem}")
     try:
         for shard_start in data.shard_offsets[:-1]:
             data.read_frames(np.array([shard_start]), np.array([0]),
@@ -548,10 +554,6 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
         raise DistilError(f"dataset {str(path)!r} has no readable images "
                           f"({type(exc).__name__}: {exc}); the student learns from images"
                           ) from None
-    longest = int(data.episode_lengths.max())
-    if config.length > longest:
-        raise DistilError(f"window length {config.length} is longer than every episode of "
-                          f"{str(path)!r} (the longest has {longest} steps)")
     return data
 
 
