@@ -44,11 +44,10 @@ from twist_models.config import (
     image_dreamer_preset,
     require_non_negative,
     require_positive,
-    to_json,
 )
 from twist_models.device import resolve_device
 from twist_models.dreamer import Dreamer
-from twist_models.stages.runlog import append_csv, prepare_output, refuse_resume, resume_conflicts
+from twist_models.stages.runlog import RunFolder, append_csv
 
 log = logging.getLogger(__name__)
 
@@ -140,22 +139,16 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
     behaviour = behaviour_config(spec.extra, dreamer_config.actor_critic)
     dreamer_config = dataclasses.replace(dreamer_config, actor_critic=dataclasses.replace(
         behaviour, imag_starts=config.imag_starts))
-    prepare_output(out, BaselineError)
-    stored, latest = out / "config.json", out / "latest.pt"
-    if stored.exists() and not resume:
-        raise BaselineError(f"{str(out)!r} already holds a baseline run; pass --resume to "
-                            "continue it, or another --out")
-    if resume and stored.exists():
-        before = json.loads(stored.read_text())["baseline"]
-        refuse_resume(resume_conflicts(before, config, ("steps",)), BaselineError)
+    folder = RunFolder(out, "baseline", BaselineError, "a baseline run")
+    folder.open(config, resume, ("steps",))
+    latest = folder.latest
     torch.manual_seed(config.seed)
     model = Dreamer(dreamer_config)
     if latest.exists():
         checkpoint = read_checkpoint(latest, kind="dreamer")
         restore(checkpoint, model, dreamer_config, model.optimisers())
     model.to_device(device)
-    stored.write_text(json.dumps({"baseline": to_json(config), "dreamer": to_json(dreamer_config),
-                                  "dataset": str(dataset)}, indent=2))
+    folder.write_config(config, dreamer=dreamer_config, dataset=Path(dataset))
     sampler = SamplerConfig(length=config.length, batch_size=config.batch_size,
                             view=config.view, keys=KEYS, holdout_every=config.holdout_every,
                             split="train", seed=derived_seed(config.seed, int(model.step)))

@@ -69,7 +69,7 @@ from twist_models.curves import plot_learning_curves
 from twist_models.device import resolve_device
 from twist_models.networks import single_threaded
 from twist_models.policies import Pushes, student_policy, teacher_policy
-from twist_models.stages.runlog import Board, append_csv, prepare_output, refuse_resume, resume_conflicts
+from twist_models.stages.runlog import Board, RunFolder, append_csv, prepare_output
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teacher, save_teacher
 
 log = logging.getLogger(__name__)
@@ -434,13 +434,16 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     if path.exists() and not resume:
         raise CollectError(f"shard {path.name!r} already exists in {str(out)!r}; pass --resume "
                            "to continue it, or --shard to add another")
-    stored = folder / "config.json"
-    if resume and stored.exists():
-        before = json.loads(stored.read_text())["collect"]
-        extendable = ("frames", "learn_frames", "freeze_best", "frozen_noise", "push_every",
-                      "push_steps", "student")
-        refuse_resume(resume_conflicts(before, config, extendable), CollectError,
-                      "--frames and --set " + ", ".join(extendable[1:]))
+    extendable = ("frames", "learn_frames", "freeze_best", "frozen_noise", "push_every",
+                  "push_steps", "student")
+    # The shard, not the config, marks an existing run here (checked above).
+    if resume:
+        _run_folder(folder).open(config, True, extendable,
+                                 "--frames and --set " + ", ".join(extendable[1:]))
+
+
+def _run_folder(folder: Path) -> RunFolder:
+    return RunFolder(folder, "collect", CollectError, "a collector run")
 
 
 class _Run:
@@ -471,9 +474,8 @@ class _Run:
         self.last_return: float | None = None
         self.board = Board(folder)
         self._load_or_create_teacher(teacher_config)
-        (folder / "config.json").write_text(json.dumps(
-            {"collect": to_json(config), "teacher": to_json(teacher_config),
-             "shard": path.name, "seed": seed}, indent=2))
+        _run_folder(folder).write_config(config, teacher=teacher_config, shard=path.name,
+                                         seed=seed)
 
     # -- state -------------------------------------------------------------------------------
     def _load_or_create_teacher(self, teacher_config: TeacherConfig) -> None:

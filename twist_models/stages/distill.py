@@ -92,10 +92,8 @@ from twist_models.losses import (
 )
 from twist_models.stages.runlog import (
     Board,
+    RunFolder,
     append_csv,
-    prepare_output,
-    refuse_resume,
-    resume_conflicts,
 )
 from twist_models.student import Student, copy_teacher_dynamics, freeze_dynamics
 from twist_models.teacher import Teacher, find_teacher, load_teacher
@@ -557,18 +555,16 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
     return data
 
 
+def _run_folder(out: Path) -> RunFolder:
+    return RunFolder(out, "distil", DistilError, "a distillation run")
+
+
 def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resume: bool) -> None:
-    prepare_output(out, DistilError)
-    stored = out / "config.json"
-    if stored.exists() and not resume:
-        raise DistilError(f"{str(out)!r} already holds a distillation run; pass --resume to "
-                          "continue it, or another --out")
-    if resume and stored.exists():
-        before = json.loads(stored.read_text())
-        conflicts = resume_conflicts(before["distil"], config, ("steps",))
-        if from_json(StudentConfig, before.get("student", {})) != student:
-            conflicts.append("the student's sizes differ")
-        refuse_resume(conflicts, DistilError)
+    folder = _run_folder(out)
+    before = folder.stored() if resume else None
+    changed = (["the student's sizes differ"] if before is not None
+               and from_json(StudentConfig, before.get("student", {})) != student else [])
+    folder.open(config, resume, ("steps",), also=changed)
 
 
 def _rank_and_world() -> tuple[int, int]:
@@ -628,10 +624,8 @@ class _Run:
         self.heldout_last: dict[str, float] = {}
         self.board = Board(out) if self.writes else None
         if self.writes:
-            (out / "config.json").write_text(json.dumps(
-                {"distil": to_json(config), "student": to_json(student_config),
-                 "teacher": str(teacher_path), "dataset": str(dataset_path),
-                 "world_size": world}, indent=2))
+            _run_folder(out).write_config(config, student=student_config, teacher=teacher_path,
+                                          dataset=dataset_path, world_size=world)
 
     def _teacher_targets(self) -> TeacherTargets:
         c = self.config

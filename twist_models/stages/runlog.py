@@ -1,11 +1,15 @@
-"""What the collector, the distiller and the baselines share about their run folders: CSV rows,
-TensorBoard scalars, output-folder checks and resume-config checks."""
+"""What the collector, the distiller and the baselines share about their run folders: one
+lifecycle (:class:`RunFolder`: the folder checked or created, a finished or running run refused
+unless resumed, a resumed run refused when its config changed, naming both values, the config
+stored as JSON), CSV rows and TensorBoard scalars."""
 
 from __future__ import annotations
 
 import csv
+import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -82,3 +86,56 @@ def refuse_resume(conflicts: list[str], error: type[TwistError],
     if conflicts:
         raise error(f"--resume with a different config ({'; '.join(conflicts)}); only "
                     f"{may_change} may change when resuming")
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """One stage's run folder and its stored ``config.json``."""
+
+    path: Path
+    """The folder."""
+    section: str
+    """The key under which ``config.json`` holds the stage's own config (e.g. ``distil``)."""
+    error: type[TwistError]
+    """The stage's exception type for every refusal."""
+    what: str
+    """What the folder holds, for messages (e.g. ``a distillation run``)."""
+
+    @property
+    def config_file(self) -> Path:
+        return self.path / "config.json"
+
+    @property
+    def latest(self) -> Path:
+        """The resume point: the newest checkpoint of the run."""
+        return self.path / "latest.pt"
+
+    def stored(self) -> dict[str, Any] | None:
+        """The stored ``config.json``, or None before the run's first write."""
+        return json.loads(self.config_file.read_text()) if self.config_file.exists() else None
+
+    def open(self, config: Any, resume: bool, may_change: tuple[str, ...],
+             may_change_options: str = "--steps", also: Sequence[str] = (),
+             other: str = "or another --out") -> None:
+        """Before anything is written: create or check the folder; refuse a folder that holds
+        a run unless ``resume``; on resume, refuse a ``config`` whose fields outside
+        ``may_change`` differ from the stored ones (``also``: further conflicts the stage
+        found), naming every one with both values."""
+        prepare_output(self.path, self.error)
+        before = self.stored()
+        if before is not None and not resume:
+            raise self.error(f"{str(self.path)!r} already holds {self.what}; pass --resume to "
+                             f"continue it, {other}")
+        if resume and before is not None:
+            conflicts = resume_conflicts(before[self.section], config, may_change)
+            refuse_resume([*conflicts, *also], self.error, may_change_options)
+
+    def write_config(self, config: Any, **context: Any) -> None:
+        """Store ``config`` under :attr:`section` beside ``context`` (further configs as
+        dataclasses, paths, counts), atomically."""
+        sections = {self.section: to_json(config)}
+        sections.update({k: to_json(v) if hasattr(v, "__dataclass_fields__") else
+                         str(v) if isinstance(v, Path) else v for k, v in context.items()})
+        partial = self.config_file.with_suffix(".json.partial")
+        partial.write_text(json.dumps(sections, indent=2))
+        os.replace(partial, self.config_file)
