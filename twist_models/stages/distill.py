@@ -189,6 +189,11 @@ class DistilConfig:
     state_weight: float = 0.0
     """Weight of the per-frame state read-out term, each state component weighted by the
     teacher actor's sensitivity to it (adds a linear state head to the student; 0: off)."""
+    frame_h_noise: float = 0.0
+    """Gaussian noise on the h the student's posterior reads in the per-frame posterior term,
+    as a fraction of the teacher's h spread over D per dimension (0: the exact h). The target
+    stays the teacher's posterior at its exact h, so the student learns to correct a wrong h
+    from the image, as its own filter needs when it drifts (not in the paper)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -234,7 +239,8 @@ class DistilConfig:
                          "frame_batch", "frame_eval_every")
         require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
                              "post_weight", "imagined_weight", "action_weight", "workers",
-                             "rare_states", "frame_post_weight", "state_weight", "frame_steps")
+                             "rare_states", "frame_post_weight", "state_weight", "frame_steps",
+                             "frame_h_noise")
         if self.frame_steps and not self.frame_terms:
             raise ConfigError(f"frame_steps={self.frame_steps} trains on the per-frame terms "
                               "alone, but frame_post_weight and state_weight are both 0")
@@ -344,13 +350,14 @@ class Distillation(nn.Module):
     the frozen teacher is held outside the module tree: it is neither trained nor synced."""
 
     def __init__(self, student: Student, teacher: Teacher, config: DistilConfig,
-                 sensitivity_scale: float = 1.0) -> None:
+                 sensitivity_scale: float = 1.0, h_noise: torch.Tensor | None = None) -> None:
         super().__init__()
         self.student = student
         self._teacher = [teacher.requires_grad_(False)]  # a target: gradients stop at it
         self.config = config
         # The per-frame state weights are divided by D's mean sensitivity (TeacherTargets).
         self.sensitivity_scale = sensitivity_scale
+        self.h_noise = h_noise
 
     @property
     def teacher(self) -> Teacher:
@@ -405,7 +412,7 @@ class Distillation(nn.Module):
         """The per-frame terms at every step of the windows, at the teacher's h there."""
         sensitivity = actor_sensitivity(self.teacher, t_post["deter"], state)
         return frame_terms(self.student, self.teacher, embed, t_post["deter"], state,
-                           sensitivity / self.sensitivity_scale, t_post["logits"])
+                           sensitivity / self.sensitivity_scale, t_post["logits"], self.h_noise)
 
     def action_term(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
                     ) -> torch.Tensor:
@@ -614,9 +621,10 @@ class _Run:
         move_optimiser_state(self.optimiser, device)
         self.targets = (self._teacher_targets()
                         if config.frame_terms or config.window_start == "teacher" else None)
+        self.h_noise = self._h_noise()
         self.objective: nn.Module = Distillation(
             self.student, self.teacher, config,
-            self.targets.scale if self.targets is not None else 1.0)
+            self.targets.scale if self.targets is not None else 1.0, self.h_noise)
         if world > 1:
             self.objective = nn.parallel.DistributedDataParallel(
                 self.objective, device_ids=[device.index] if device.type == "cuda" else None)
@@ -626,6 +634,12 @@ class _Run:
         if self.writes:
             _run_folder(out).write_config(config, student=student_config, teacher=teacher_path,
                                           dataset=dataset_path, world_size=world)
+
+    def _h_noise(self) -> torch.Tensor | None:
+        """The std of the per-frame term's noise on h, per dimension (None: none)."""
+        if not self.config.frame_h_noise or self.targets is None:
+            return None
+        return self.config.frame_h_noise * self.targets.deter_std
 
     def _teacher_targets(self) -> TeacherTargets:
         c = self.config
@@ -771,7 +785,7 @@ class _Run:
             with encoder_autocast(c.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
             terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
-                                batch["state"], batch["sensitivity"])
+                                batch["state"], batch["sensitivity"], h_noise=self.h_noise)
             loss = frame_loss(terms, c)
             self.optimiser.zero_grad(set_to_none=True)
             loss.backward()
