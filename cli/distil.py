@@ -12,16 +12,9 @@ import typer
 
 from twist_cli.common import new_app, out, parse_settings, progress_bar, run_app
 from twist_models.device import resolve_device
-from twist_models.stages.distill import (
-    DISTIL_PRESETS,
-    RECIPES,
-    DistilConfig,
-    distil,
-    distil_preset,
-    initialise_distributed,
-    stored_config,
-)
+from twist_models.distillation import DISTIL_PRESETS, RECIPES, DistilConfig, distil_preset
 from twist_models.stages.distill import Progress as DistilProgress
+from twist_models.stages.distill import distil, initialise_distributed, stored_config
 
 app = new_app()
 

@@ -26,7 +26,8 @@ import torch
 
 from twist_data.reader import open_dataset
 from twist_data.sampler import WindowSampler
-from twist_models.stages.distill import Distillation, load_student, stored_config
+from twist_models.distillation import Distillation
+from twist_models.stages.distill import load_student, stored_config
 from twist_models.teacher import Teacher, load_teacher
 
 Batch = dict[str, torch.Tensor]

@@ -23,16 +23,9 @@ from twist_data.errors import ConfigError
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
 from twist_models.config import student_preset, teacher_preset, to_json
+from twist_models.distillation import Distillation, distil_preset, latent_agreement
 from twist_models.losses import distillation_loss, imagined_distillation_loss
-from twist_models.stages.distill import (
-    DistilError,
-    Distillation,
-    distil,
-    distil_preset,
-    latent_agreement,
-    load_student,
-    stored_config,
-)
+from twist_models.stages.distill import DistilError, distil, load_student, stored_config
 from twist_models.stages.runlog import append_csv, resume_conflicts
 from twist_models.student import Student, copy_teacher_dynamics, stack_frames, step_frames
 from twist_models.teacher import Teacher, load_teacher, save_teacher
@@ -343,7 +336,8 @@ def test_distillation_never_imports_a_simulator(distil_inputs, tmp_path) -> None
     dataset, teacher = distil_inputs
     code = (
         "import sys\n"
-        "from twist_models.stages.distill import distil, distil_preset\n"
+        "from twist_models.distillation import distil_preset\n"
+        "from twist_models.stages.distill import distil\n"
         f"distil({str(dataset)!r}, {str(tmp_path / 'run')!r}, distil_preset('tiny', steps=2),"
         f" teacher={str(teacher)!r})\n"
         "import twist_cli.distil\n"

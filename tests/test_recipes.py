@@ -19,6 +19,7 @@ from twist_data.reader import open_dataset
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
 from twist_models.config import student_preset, teacher_preset
+from twist_models.distillation import RECIPES, Distillation, distil_preset
 from twist_models.frame_targets import (
     FrameBatches,
     actor_sensitivity,
@@ -28,14 +29,7 @@ from twist_models.frame_targets import (
     teacher_targets,
 )
 from twist_models.losses import frame_posterior_loss, weighted_state_loss
-from twist_models.stages.distill import (
-    RECIPES,
-    Distillation,
-    distil,
-    distil_preset,
-    load_student,
-    stored_config,
-)
+from twist_models.stages.distill import distil, load_student, stored_config
 from twist_models.student import Student
 from twist_models.teacher import Teacher, save_teacher
 

@@ -1,22 +1,13 @@
-"""Offline teacher -> student distillation (TWIST, Eq. 3 and Eq. 4) from a matching dataset.
+"""The ``twist-distil`` stage: offline teacher -> student distillation from a matching dataset,
+with the objective of :mod:`twist_models.distillation`.
 
 Never touches a simulator: it reads D and a frozen teacher checkpoint and writes a run folder
 ``<out>/``: ``config.json``, ``metrics.csv`` (training terms, updates/s, data-wait share),
 ``heldout.csv`` and its plot ``latent-agreement.png``, ``latest.pt`` (resume point),
 ``student-<updates>.pt`` snapshots each with its deployable ``agent-<updates>.pt``, the final
-``student.pt``, the deployable ``agent.pt``
-(:class:`twist_models.agent.Agent`) and ``summary.json``.
+``student.pt``, the deployable ``agent.pt`` (:class:`twist_models.agent.Agent`) and
+``summary.json``.
 
-Decisions (the README's "twist-distil" section says more):
-
-* **Shared draws.** Teacher and student sample their categorical latents from the *same*
-  uniform draws (inverse-CDF sampling): z_t^teacher and z_t^student are equal wherever the
-  two distributions agree, so h_t^student is compared with the h_t^teacher that the same
-  sample path produced. With independent draws the h target is noisy even for a perfect
-  student. ``shared_draws=False`` gives independent samples.
-* **Eq. 4** starts from the posterior states of both models at ``imag_starts`` random steps
-  of the windows (0: every step, as the paper); the teacher samples its actor plus Gaussian
-  noise, the student replays those actions; gradients flow into the student's start states.
 * **Held-out agreement** is measured on a fixed batch of windows from the held-out episodes
   (every ``holdout_every``-th episode, never trained on), with fixed draws, so its curve
   moves only because the student changes.
@@ -27,15 +18,13 @@ Decisions (the README's "twist-distil" section says more):
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import functools
 import json
 import logging
 import os
 import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,10 +33,9 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader
 
-from twist_data.errors import ConfigError, TwistError
+from twist_data.errors import TwistError
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.sampler import (
-    SamplerConfig,
     WindowDataset,
     WindowSampler,
     heldout_episodes,
@@ -62,33 +50,27 @@ from twist_models.checkpoint import (
     save_checkpoint,
 )
 from twist_models.config import (
-    CNN_NORMS,
-    PRESETS,
-    OptimConfig,
     StudentConfig,
     from_json,
-    require_choice,
-    require_non_negative,
-    require_positive,
     student_preset,
     to_json,
 )
 from twist_models.curves import plot_agreement
 from twist_models.device import resolve_device
+from twist_models.distillation import (
+    KEYS,
+    DistilConfig,
+    Distillation,
+    encoder_autocast,
+    frame_loss,
+    latent_agreement,
+)
 from twist_models.frame_targets import (
     FrameBatches,
     TeacherTargets,
-    actor_sensitivity,
-    frame_agreement,
     frame_terms,
     teacher_latent_before,
     teacher_targets,
-)
-from twist_models.losses import (
-    action_matching_loss,
-    distillation_loss,
-    frame_posterior_loss,
-    imagined_distillation_loss,
 )
 from twist_models.stages.runlog import (
     Board,
@@ -100,9 +82,6 @@ from twist_models.teacher import Teacher, find_teacher, load_teacher
 
 log = logging.getLogger(__name__)
 
-KEYS = ("image", "state", "action", "is_first")
-PRECISIONS = ("float32", "bfloat16", "auto")
-WINDOW_STARTS = ("zero", "teacher")
 TERMS = ("h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl", "action",
          "frame_post_kl", "state")
 METRIC_COLUMNS = ("updates", "wall_s", "updates_per_s", "data_wait_share", "loss", *TERMS,
@@ -117,370 +96,6 @@ AGENT = "agent.pt"
 
 class DistilError(TwistError):
     """Distillation cannot start or continue (inputs, output folder, resume state)."""
-
-
-@dataclass(frozen=True)
-class DistilConfig:
-    """One distillation run: student size, batches, the losses and the schedule. The defaults
-    are the paper's objective (the ``paper`` recipe); :data:`RECIPES` name other starting
-    points."""
-
-    recipe: str = "paper"
-    """The named recipe this config started from (:data:`RECIPES`), kept as a label with the
-    run and its agent bundle; the fields below are what ran."""
-    student: str = "quick"
-    """Student size preset (its CNN: ``tiny``, ``quick``, ``paper``); the RSSM is the teacher's."""
-    steps: int = 50_000
-    """Student updates."""
-    batch_size: int = 16
-    """Windows per update (the paper: 16)."""
-    length: int = 50
-    """L, steps per window (the paper: 50)."""
-    horizon: int = 15
-    """H, imagined steps of Eq. 4 (the paper: 15)."""
-    action_noise: float = 0.3
-    """Std of the Gaussian noise added to the teacher's actions in Eq. 4 (0: no noise)."""
-    imagined: bool = True
-    """Train with Eq. 4 too (False: the paper's "without imagined distillation" ablation)."""
-    imag_starts: int = 0
-    """Posterior states that start Eq. 4's rollouts; 0 = every step of every window."""
-    shared_draws: bool = True
-    """Teacher and student sample their latents from the same uniform draws."""
-    filter_read: str = "sample"
-    """How both filters take z from their posteriors along Eq. 3's windows: ``sample`` (the
-    paper) or ``mean``, the class probabilities, which makes both filters deterministic, so
-    the student's h carries its own errors along the window instead of following the
-    teacher's draws; a student so trained acts with ``twist-eval --posterior mean`` (not in
-    the paper; see the README, "Learning results")."""
-    copy_dynamics: bool = True
-    """Start the student's RSSM from the teacher's (False: from scratch, as the paper)."""
-    freeze_dynamics: bool = False
-    """Keep the copied transition (the GRU, its input layer and the prior head) fixed, so
-    only the encoder and the posterior head learn: the student's h is then the teacher's
-    recurrence run on the student's z (needs ``copy_dynamics``; not in the paper)."""
-    h_weight: float = 1.0
-    """Weight of ||h_teacher - h_student||^2 on data (Eq. 3)."""
-    prior_weight: float = 1.0
-    """Weight of KL(prior_student || prior_teacher) on data (Eq. 3)."""
-    post_weight: float = 1.0
-    """Weight of KL(posterior_student || posterior_teacher) on data (Eq. 3)."""
-    imagined_weight: float = 1.0
-    """Weight of the whole imagined term (Eq. 4)."""
-    action_weight: float = 0.0
-    """Weight of the action-matching term: the teacher's actor on the student's posterior
-    against it on the teacher's (not in the paper; 0: the paper's objective)."""
-    window_start: str = "zero"
-    """Latent both filters start each training window from: ``zero`` (the paper's: h = 0,
-    z = 0 mid-episode) or ``teacher`` (the teacher's own latent at the step before, filtered
-    from the episode's start: the student learns to stay on the teacher's long-run path
-    rather than to recover from h = 0; not in the paper). Held-out windows start from zero."""
-    frames: int = 1
-    """Images the student's posterior reads per step, each encoded alone: the current one and
-    the ``frames - 1`` before it (1: the paper's single image; 2 shows it motion)."""
-    encoder_norm: str = "none"
-    """Normalisation in the student's CNN: ``none`` (DreamerV2's, the paper's) or ``layer``
-    (see :class:`~twist_models.config.CNNConfig`)."""
-    view: int | None = None
-    """Camera view shown at every step; None: a random one of the K per step."""
-    frame_post_weight: float = 0.0
-    """Weight of the per-frame posterior term: KL of the student's posterior to the
-    teacher's, both at the teacher's h (:mod:`twist_models.frame_targets`; 0: off, the
-    paper)."""
-    state_weight: float = 0.0
-    """Weight of the per-frame state read-out term, each state component weighted by the
-    teacher actor's sensitivity to it (adds a linear state head to the student; 0: off)."""
-    frame_h_noise: float = 0.0
-    """Gaussian noise on the h the student's posterior reads in the per-frame posterior term,
-    as a fraction of the teacher's h spread over D per dimension (0: the exact h). The target
-    stays the teacher's posterior at its exact h, so the student learns to correct a wrong h
-    from the image, as its own filter needs when it drifts (not in the paper)."""
-    frame_steps: int = 0
-    """Updates of a first stage on single frames with the per-frame terms alone, before
-    Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
-    frame_batch: int = 64
-    """Frames per update of the first stage."""
-    frame_eval_every: int = 500
-    """First-stage updates between held-out evaluations and checkpoints."""
-    rare_states: float = 0.0
-    """Draw training windows favouring D's rarely visited states, with this exponent (see
-    :func:`twist_data.sampler.state_rarity`; 0: uniform, the paper; held-out windows stay
-    uniform)."""
-    precision: str = "float32"
-    """Arithmetic of the student's CNN in training: ``float32``; ``bfloat16`` (autocast: the
-    weights stay float32); ``auto``: bfloat16 on CUDA and on CPUs with native bfloat16
-    (AVX512-BF16 or AMX, where it trains ~2x the frames per second:
-    ``benchmarks/encoder_speed.py``), float32 elsewhere, where it would be slower."""
-    lr: float = 3e-4
-    """Adam learning rate of the student (DreamerV2's world-model rate)."""
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    """Adam epsilon, gradient clip and weight decay."""
-    seed: int = 0
-    """Seed of the student's initialisation, the windows and the sampling draws."""
-    holdout_every: int = 10
-    """Every n-th episode of D is held out for the agreement metrics and never trained on."""
-    heldout_windows: int = 16
-    """Windows in the fixed held-out batch."""
-    eval_every: int = 1_000
-    """Updates between held-out evaluations (and metrics.csv rows)."""
-    checkpoint_every: int = 1_000
-    """Updates between writes of ``latest.pt``."""
-    snapshot_every: int = 10_000
-    """Updates between kept ``student-<updates>.pt`` snapshots."""
-    workers: int = 1
-    """DataLoader processes decoding windows (0: decode in the training process)."""
-
-    def __post_init__(self) -> None:
-        if self.student not in PRESETS:
-            raise ConfigError(f"unknown student preset {self.student!r}; valid presets are: "
-                              f"{', '.join(PRESETS)}")
-        require_choice(self, "recipe", tuple(RECIPES))
-        require_positive(self, "steps", "batch_size", "length", "horizon", "frames", "lr",
-                         "heldout_windows", "eval_every", "checkpoint_every", "snapshot_every",
-                         "frame_batch", "frame_eval_every")
-        require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
-                             "post_weight", "imagined_weight", "action_weight", "workers",
-                             "rare_states", "frame_post_weight", "state_weight", "frame_steps",
-                             "frame_h_noise")
-        if self.frame_steps and not self.frame_terms:
-            raise ConfigError(f"frame_steps={self.frame_steps} trains on the per-frame terms "
-                              "alone, but frame_post_weight and state_weight are both 0")
-        if self.holdout_every < 2:
-            raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
-        require_choice(self, "encoder_norm", CNN_NORMS)
-        require_choice(self, "precision", PRECISIONS)
-        require_choice(self, "window_start", WINDOW_STARTS)
-        # The mode has no gradient to train the student's posterior through.
-        require_choice(self, "filter_read", ("sample", "mean"))
-        if self.view is not None and self.view < 0:
-            raise ConfigError(f"view must be >= 0, got {self.view}")
-        if self.freeze_dynamics and not self.copy_dynamics:
-            raise ConfigError("freeze_dynamics keeps the teacher's copied dynamics fixed; it "
-                              "needs copy_dynamics")
-
-    @property
-    def frame_terms(self) -> bool:
-        """Whether the per-frame terms train (and the teacher's targets over D are needed)."""
-        return self.frame_post_weight > 0 or self.state_weight > 0
-
-    def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
-        return SamplerConfig(length=self.length, batch_size=batch_size or self.batch_size,
-                             view=self.view, seed=seed, keys=KEYS,
-                             holdout_every=self.holdout_every, split=split,
-                             rare_states=self.rare_states if split == "train" else 0.0)
-
-
-#: Recipes by name: what each sets on top of a size preset. ``paper``: Eq. 3 and 4 alone
-#: (with the student's RSSM started from the teacher's, which every preset does). ``dense``:
-#: the same, plus the per-frame targets of :mod:`twist_models.frame_targets`, first alone on
-#: single frames for the size preset's ``FRAME_STEPS`` updates, then beside Eq. 3/4, and a
-#: layer-normalised CNN (see README, "Recipes", for what each part is measured to give).
-RECIPES: dict[str, dict[str, Any]] = {
-    "paper": {},
-    "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0,
-              "precision": "auto"},
-}
-#: Updates of the ``dense`` recipe's single-frame stage at each size preset. One update of 64
-#: frames costs ~1/20 of a ``quick`` update on windows (36 against ~1.5 per second on the
-#: 2-core CPU, bfloat16), and the held-out per-frame agreement still improved at 3,000.
-FRAME_STEPS = {"paper": 20_000, "quick": 10_000, "tiny": 4}
-
-DISTIL_PRESETS: dict[str, DistilConfig] = {
-    # The paper's batch, window and horizon; Eq. 4 from every posterior state.
-    "paper": DistilConfig(student="paper", steps=50_000),
-    # CPU demo (~1 s per update on 2 cores, the CNN on 800 frames dominates): quick sizes,
-    # Eq. 4 from 256 states per update; windows decoded in-process, since a loader process
-    # takes a core from the update on a 2-core machine (benchmarks/distil_update.py).
-    "quick": DistilConfig(student="quick", steps=800, imag_starts=256, eval_every=50,
-                          checkpoint_every=50, snapshot_every=400, workers=0),
-    # Tests: seconds.
-    "tiny": DistilConfig(student="tiny", steps=6, batch_size=2, length=8, horizon=3,
-                         imag_starts=8, eval_every=3, checkpoint_every=2, snapshot_every=4,
-                         holdout_every=4, heldout_windows=2, workers=0),
-}
-
-
-def distil_preset(name: str, recipe: str = "paper", **overrides: Any) -> DistilConfig:
-    """Size preset ``name`` with ``recipe``'s settings (:data:`RECIPES`), then fields replaced
-    by ``overrides`` (None values are ignored)."""
-    if name not in DISTIL_PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; valid presets are: "
-                          f"{', '.join(DISTIL_PRESETS)}")
-    if recipe not in RECIPES:
-        raise ConfigError(f"unknown recipe {recipe!r}; valid recipes are: {', '.join(RECIPES)}")
-    settings = dict(RECIPES[recipe], recipe=recipe)
-    if recipe == "dense":
-        settings["frame_steps"] = FRAME_STEPS[name]
-    settings.update({k: v for k, v in overrides.items() if v is not None})
-    return dataclasses.replace(DISTIL_PRESETS[name], **settings)
-
-
-# -- one update ---------------------------------------------------------------------------------
-@functools.cache
-def _cpu_has_bfloat16() -> bool:
-    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-
-
-def encoder_autocast(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
-    """The context the student's CNN trains in: bfloat16 autocast for ``bfloat16``, and for
-    ``auto`` where the device computes bfloat16 natively; otherwise nothing."""
-    if precision == "auto":
-        native = device.type == "cuda" or (device.type == "cpu" and _cpu_has_bfloat16())
-        precision = "bfloat16" if native else "float32"
-    if precision == "bfloat16":
-        return torch.autocast(device.type, dtype=torch.bfloat16)
-    return contextlib.nullcontext()
-
-
-def frame_loss(terms: Mapping[str, torch.Tensor], config: DistilConfig) -> torch.Tensor:
-    """The per-frame terms weighted by ``config`` (a student without a state head has no
-    ``state`` term)."""
-    loss = config.frame_post_weight * terms["frame_post_kl"]
-    if "state" in terms:
-        loss = loss + config.state_weight * terms["state"]
-    return loss
-
-
-def draws(batch_shape: tuple[int, ...], stoch: int, device: torch.device) -> torch.Tensor:
-    """Uniform sampling draws [*batch_shape, S, 1] for :func:`twist_models.rssm.sample_one_hot`."""
-    return torch.rand(*batch_shape, stoch, 1, device=device)
-
-
-class Distillation(nn.Module):
-    """The objective as a module around the student (so DistributedDataParallel can wrap it);
-    the frozen teacher is held outside the module tree: it is neither trained nor synced."""
-
-    def __init__(self, student: Student, teacher: Teacher, config: DistilConfig,
-                 sensitivity_scale: float = 1.0, h_noise: torch.Tensor | None = None) -> None:
-        super().__init__()
-        self.student = student
-        self._teacher = [teacher.requires_grad_(False)]  # a target: gradients stop at it
-        self.config = config
-        # The per-frame state weights are divided by D's mean sensitivity (TeacherTargets).
-        self.sensitivity_scale = sensitivity_scale
-        self.h_noise = h_noise
-
-    @property
-    def teacher(self) -> Teacher:
-        return self._teacher[0]
-
-    def forward(self, batch: Mapping[str, torch.Tensor]
-                ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """Total loss [] and every term [] for a batch of windows ({k: [B, L, ...]})."""
-        c = self.config
-        s_post, t_post, terms, embed = self.filter(batch)
-        loss = (c.h_weight * terms["h"] + c.prior_weight * terms["prior_kl"]
-                + c.post_weight * terms["post_kl"])
-        if c.frame_terms:
-            frame = self.window_frame_terms(embed, t_post, batch["state"])
-            terms.update(frame)
-            loss = loss + frame_loss(frame, c)
-        if c.action_weight > 0:
-            terms["action"] = self.action_term(s_post, t_post)
-            loss = loss + c.action_weight * terms["action"]
-        if c.imagined and c.imagined_weight > 0:
-            imagined = self.imagined_terms(s_post, t_post)
-            terms.update({f"imagined_{k}": v for k, v in imagined.items()})
-            loss = loss + c.imagined_weight * (imagined["h"] + imagined["prior_kl"])
-        return loss, terms
-
-    def filter(self, batch: Mapping[str, torch.Tensor]
-               ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor],
-                          dict[str, torch.Tensor], torch.Tensor]:
-        """Both models' posteriors over the windows (student on images, teacher on states,
-        from the same draws when shared) and the Eq. 3 terms: (student posterior, teacher
-        posterior, terms, the student's posterior input [B, L, E'])."""
-        action, is_first = batch["action"], batch["is_first"]
-        # Windows may start from the teacher's latent before them (``window_start``).
-        start = ({"deter": batch["start_deter"], "stoch": batch["start_stoch"]}
-                 if "start_deter" in batch else None)
-        post_draws = None
-        if self.config.shared_draws:
-            post_draws = draws(action.shape[:2], self.student.config.rssm.stoch, action.device)
-        with torch.no_grad():
-            wm = self.teacher.world_model
-            t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
-                                              start, post_draws, self.config.filter_read)
-        with encoder_autocast(self.config.precision, is_first.device):
-            embed = self.student.embed(batch["image"], is_first).float()
-        s_post, s_prior = self.student.rssm.observe(embed, action, is_first, start, post_draws,
-                                                    self.config.filter_read)
-        terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
-        return s_post, t_post, terms, embed
-
-    def window_frame_terms(self, embed: torch.Tensor, t_post: dict[str, torch.Tensor],
-                           state: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The per-frame terms at every step of the windows, at the teacher's h there."""
-        sensitivity = actor_sensitivity(self.teacher, t_post["deter"], state)
-        return frame_terms(self.student, self.teacher, embed, t_post["deter"], state,
-                           sensitivity / self.sensitivity_scale, t_post["logits"], self.h_noise)
-
-    def action_term(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
-                    ) -> torch.Tensor:
-        """The teacher's actor (mode) on both posteriors [B, L, ...], matched; the gradient
-        reaches the student's latent through the frozen actor."""
-        actor = self.teacher.actor_critic.actor
-        with torch.no_grad():
-            target = actor(self.teacher.world_model.rssm.feature(t_post)).mode
-        return action_matching_loss(actor(self.student.rssm.feature(s_post)).mode, target)
-
-    def imagined_terms(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
-                       ) -> dict[str, torch.Tensor]:
-        """Eq. 4 from (a subset of) the posterior states [B, L, ...] of both models."""
-        c, teacher = self.config, self.teacher
-        flat_s = {k: v.flatten(0, 1) for k, v in s_post.items()}
-        flat_t = {k: v.flatten(0, 1) for k, v in t_post.items()}
-        n = flat_s["deter"].shape[0]
-        if 0 < c.imag_starts < n:
-            chosen = torch.randperm(n, device=flat_s["deter"].device)[:c.imag_starts]
-            flat_s = {k: v[chosen] for k, v in flat_s.items()}
-            flat_t = {k: v[chosen] for k, v in flat_t.items()}
-            n = c.imag_starts
-        stoch = self.student.config.rssm.stoch
-        device = flat_s["deter"].device
-        img_draws = draws((n, c.horizon), stoch, device) if c.shared_draws else None
-        actor = teacher.actor_critic.actor
-
-        def noisy_actor(feature: torch.Tensor) -> torch.Tensor:
-            action = actor(feature).rsample()
-            if c.action_noise:
-                action = action + c.action_noise * torch.randn_like(action)
-            return action.clamp(-1.0, 1.0)
-
-        with torch.no_grad():
-            t_states, actions = teacher.world_model.rssm.imagine(
-                flat_t, c.horizon, policy=noisy_actor, uniform=img_draws)
-        s_states, _ = self.student.rssm.imagine(flat_s, c.horizon, actions=actions,
-                                                uniform=img_draws)
-        return imagined_distillation_loss(s_states, t_states)
-
-
-@torch.no_grad()
-def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, torch.Tensor],
-                     config: DistilConfig, seed: int = 0) -> dict[str, float]:
-    """How close the student's latents are to the teacher's on ``batch``: per-element MSE of
-    h (``h_mse``), the share of the teacher's h variance over the batch's steps that the
-    student reproduces (``h_explained``, R² = 1 - h_mse / variance), posterior and prior KL
-    (student || teacher) and the h-MSE along Eq. 4's rollouts. All randomness (draws, starts,
-    action noise) comes from ``seed``, so a fixed student on a fixed batch always scores the
-    same."""
-    device = batch["action"].device
-    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-        torch.manual_seed(seed)
-        objective = Distillation(student, teacher, dataclasses.replace(config, shared_draws=True))
-        s_post, t_post, terms, embed = objective.filter(batch)
-        imagined = objective.imagined_terms(s_post, t_post)
-        frames = frame_agreement(student, teacher, embed, t_post["deter"], batch["state"])
-        frame_kl = frame_posterior_loss(student.rssm.posterior_logits(t_post["deter"], embed),
-                                        t_post["logits"])
-    deter = student.config.rssm.deter
-    h_mse = float(terms["h"]) / deter
-    # An h-MSE means little without the scale of the teacher's h (on cartpole its variance is
-    # ~0.06 per dimension): the share of that variance the student reproduces says more.
-    h_variance = float(t_post["deter"].flatten(0, -2).var(0).mean())
-    return {"h_mse": h_mse, "h_explained": 1.0 - h_mse / max(h_variance, 1e-12),
-            "post_kl": float(terms["post_kl"]), "prior_kl": float(terms["prior_kl"]),
-            "imagined_h_mse": float(imagined["h"]) / deter, "frame_post_kl": float(frame_kl),
-            **frames}
 
 
 # -- the run ------------------------------------------------------------------------------------

@@ -36,6 +36,7 @@ from twist_data.rerender import rerender_dataset
 from twist_data.tasks import task_spec
 from twist_models.config import require_positive
 from twist_models.curves import figure
+from twist_models.distillation import DISTIL_PRESETS, DistilConfig, distil_preset
 from twist_models.stages.baselines import BaselineConfig, train_baseline
 from twist_models.stages.collect import (
     COLLECT_PRESETS,
@@ -44,7 +45,7 @@ from twist_models.stages.collect import (
     collect_preset,
     run_dir,
 )
-from twist_models.stages.distill import DISTIL_PRESETS, DistilConfig, distil, distil_preset
+from twist_models.stages.distill import distil
 from twist_models.stages.evaluation import (
     REFERENCE_AGENTS,
     EvalConfig,
@@ -74,7 +75,7 @@ AGENTS: dict[str, str] = {
     "state-recon": "State Recon",
     "zero": "Zero actions (the floor)",
 }
-#: Each student column's distillation: a recipe (``twist_models.stages.distill.RECIPES``) and what it
+#: Each student column's distillation: a recipe (``twist_models.distillation.RECIPES``) and what it
 #: changes. The paper's recipe with its from-scratch start and its two ablations, action
 #: matching at the weight measured to help at CPU scale, and the ``dense`` recipe with each
 #: of its parts removed in turn (README, "Recipes").
