@@ -15,6 +15,10 @@ ORDINAL = (r"(first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|e
            r"nineteenth|twentieth|twenty-\w+)")
 HISTORY = re.compile(rf"(?i)\b{ORDINAL}\s+(work\s+period|session)s?\b|\bissue\s+#?\d+|"
                      r"\bwork\s+periods?\b|\bthis\s+release\b")
+#: In prose, a bare ordinal in brackets ("(fifteenth)") names a work period too.
+BRACKETED = re.compile(r"(?i)\((fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth|"
+                       r"thirteenth|fourteenth|fifteenth|sixteenth|seventeenth|eighteenth|"
+                       r"nineteenth|twentieth|twenty-\w+)\b[^)]*\)")
 
 
 def slug(heading: str) -> str:
@@ -60,6 +64,6 @@ def test_no_development_history_in_tracked_files() -> None:
         if not path.is_file() or path == Path(__file__).resolve():
             continue
         for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
-            if HISTORY.search(line):
+            if HISTORY.search(line) or (path.suffix == ".md" and BRACKETED.search(line)):
                 found.append(f"{name}:{number}: {line.strip()[:80]}")
     assert not found, "development history in the project:\n" + "\n".join(found[:20])
