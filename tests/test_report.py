@@ -217,3 +217,15 @@ def test_cli_refuses_bad_input_without_traceback(tmp_path: Path) -> None:
     assert result.returncode == 2, result.stderr
     assert "--seeds must be a comma-separated list, got '0,x'" in result.stderr
     assert "Traceback" not in result.stderr and not any(tmp_path.iterdir())
+
+
+def test_every_student_column_is_an_agent_with_a_valid_recipe() -> None:
+    from twist_models.distillation import distil_preset
+    from twist_models.stages.report import AGENTS, STUDENT_VARIANTS
+
+    assert set(STUDENT_VARIANTS) <= set(AGENTS)
+    for name, (recipe, changes) in STUDENT_VARIANTS.items():
+        config = distil_preset("tiny", recipe, **changes)
+        base = distil_preset("tiny", recipe)
+        # Each ablation changes exactly what it names, and changes something.
+        assert {k for k in changes if getattr(config, k) != getattr(base, k)} == set(changes), name

@@ -118,11 +118,6 @@ class DistilConfig:
     state_weight: float = 0.0
     """Weight of the per-frame state read-out term, each state component weighted by the
     teacher actor's sensitivity to it (adds a linear state head to the student; 0: off)."""
-    frame_h_noise: float = 0.0
-    """Gaussian noise on the h the student's posterior reads in the per-frame posterior term,
-    as a fraction of the teacher's h spread over D per dimension (0: the exact h). The target
-    stays the teacher's posterior at its exact h, so the student learns to correct a wrong h
-    from the image, as its own filter needs when it drifts (not in the paper)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -168,8 +163,7 @@ class DistilConfig:
                          "frame_batch", "frame_eval_every")
         require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
                              "post_weight", "imagined_weight", "action_weight", "workers",
-                             "rare_states", "frame_post_weight", "state_weight", "frame_steps",
-                             "frame_h_noise")
+                             "rare_states", "frame_post_weight", "state_weight", "frame_steps")
         if self.frame_steps and not self.frame_terms:
             raise ConfigError(f"frame_steps={self.frame_steps} trains on the per-frame terms "
                               "alone, but frame_post_weight and state_weight are both 0")
@@ -201,12 +195,14 @@ class DistilConfig:
 #: Recipes by name: what each sets on top of a size preset. ``paper``: Eq. 3 and 4 alone
 #: (with the student's RSSM started from the teacher's, which every preset does). ``dense``:
 #: the same, plus the per-frame targets of :mod:`twist_models.frame_targets`, first alone on
-#: single frames for the size preset's ``FRAME_STEPS`` updates, then beside Eq. 3/4, and a
-#: layer-normalised CNN (see README, "Recipes", for what each part is measured to give).
+#: single frames for the size preset's ``FRAME_STEPS`` updates, then beside Eq. 3/4; windows
+#: that start from the teacher's latent before them; sampling draws of its own (not the
+#: teacher's), as when it acts; and a layer-normalised CNN (docs/design.md, "Recipes", and
+#: docs/results.md for what each part was measured to give).
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {},
     "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0,
-              "precision": "auto"},
+              "precision": "auto", "window_start": "teacher", "shared_draws": False},
 }
 #: Updates of the ``dense`` recipe's single-frame stage at each size preset. One update of 64
 #: frames costs ~1/20 of a ``quick`` update on windows (36 against ~1.5 per second on the
@@ -279,14 +275,13 @@ class Distillation(nn.Module):
     the frozen teacher is held outside the module tree: it is neither trained nor synced."""
 
     def __init__(self, student: Student, teacher: Teacher, config: DistilConfig,
-                 sensitivity_scale: float = 1.0, h_noise: torch.Tensor | None = None) -> None:
+                 sensitivity_scale: float = 1.0) -> None:
         super().__init__()
         self.student = student
         self._teacher = [teacher.requires_grad_(False)]  # a target: gradients stop at it
         self.config = config
         # The per-frame state weights are divided by D's mean sensitivity (TeacherTargets).
         self.sensitivity_scale = sensitivity_scale
-        self.h_noise = h_noise
 
     @property
     def teacher(self) -> Teacher:
@@ -341,7 +336,7 @@ class Distillation(nn.Module):
         """The per-frame terms at every step of the windows, at the teacher's h there."""
         sensitivity = actor_sensitivity(self.teacher, t_post["deter"], state)
         return frame_terms(self.student, self.teacher, embed, t_post["deter"], state,
-                           sensitivity / self.sensitivity_scale, t_post["logits"], self.h_noise)
+                           sensitivity / self.sensitivity_scale, t_post["logits"])
 
     def action_term(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
                     ) -> torch.Tensor:

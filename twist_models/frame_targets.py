@@ -79,11 +79,6 @@ class TeacherTargets:
     """The mean raw sensitivity over rows and components: the weights above (and those of
     any later batch) are divided by it, so they average 1 over D."""
 
-    @property
-    def deter_std(self) -> torch.Tensor:
-        """[D]: the spread of the teacher's h over D, per dimension."""
-        return self.deter.std(0)
-
     def __len__(self) -> int:
         return int(self.steps.size)
 
@@ -184,23 +179,17 @@ class FrameBatches:
 
 def frame_terms(student: Student, teacher: Teacher, embed: torch.Tensor, deter: torch.Tensor,
                 state: torch.Tensor, sensitivity: torch.Tensor,
-                teacher_logits: torch.Tensor | None = None,
-                h_noise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                teacher_logits: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Both per-frame losses: the student's posterior input ``embed`` [..., E'], the teacher's
     ``deter`` [..., D], the ``state`` [..., S] and its ``sensitivity`` weights [..., S]
     (normalised) -> {``frame_post_kl``, ``state``}, each [] (``state`` only for a student
     with a state head). ``teacher_logits`` [..., S, C] is the teacher's posterior there when
-    already at hand (else computed). ``h_noise`` [D]: the std of Gaussian noise added to the
-    h the *student's* posterior reads (the target stays the teacher's posterior at its exact
-    h), so that the student learns to take from the image what a wrong h gets wrong."""
+    already at hand (else computed)."""
     if teacher_logits is None:
         with torch.no_grad():
             wm = teacher.world_model
             teacher_logits = wm.rssm.posterior_logits(deter, wm.embed(state))
-    deter = deter.detach()
-    if h_noise is not None:
-        deter = deter + h_noise * torch.randn_like(deter)
-    student_logits = student.rssm.posterior_logits(deter, embed)
+    student_logits = student.rssm.posterior_logits(deter.detach(), embed)
     terms = {"frame_post_kl": frame_posterior_loss(student_logits, teacher_logits)}
     if student.state_head is not None:
         terms["state"] = weighted_state_loss(student.read_state(embed), state, sensitivity)

@@ -236,10 +236,9 @@ class _Run:
         move_optimiser_state(self.optimiser, device)
         self.targets = (self._teacher_targets()
                         if config.frame_terms or config.window_start == "teacher" else None)
-        self.h_noise = self._h_noise()
         self.objective: nn.Module = Distillation(
             self.student, self.teacher, config,
-            self.targets.scale if self.targets is not None else 1.0, self.h_noise)
+            self.targets.scale if self.targets is not None else 1.0)
         if world > 1:
             self.objective = nn.parallel.DistributedDataParallel(
                 self.objective, device_ids=[device.index] if device.type == "cuda" else None)
@@ -249,12 +248,6 @@ class _Run:
         if self.writes:
             _run_folder(out).write_config(config, student=student_config, teacher=teacher_path,
                                           dataset=dataset_path, world_size=world)
-
-    def _h_noise(self) -> torch.Tensor | None:
-        """The std of the per-frame term's noise on h, per dimension (None: none)."""
-        if not self.config.frame_h_noise or self.targets is None:
-            return None
-        return self.config.frame_h_noise * self.targets.deter_std
 
     def _teacher_targets(self) -> TeacherTargets:
         c = self.config
@@ -400,7 +393,7 @@ class _Run:
             with encoder_autocast(c.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
             terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
-                                batch["state"], batch["sensitivity"], h_noise=self.h_noise)
+                                batch["state"], batch["sensitivity"])
             loss = frame_loss(terms, c)
             self.optimiser.zero_grad(set_to_none=True)
             loss.backward()

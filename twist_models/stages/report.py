@@ -66,6 +66,8 @@ AGENTS: dict[str, str] = {
     "twist-dense-no-state": "dense recipe w/o the state read-out",
     "twist-dense-no-frame-kl": "dense recipe w/o the per-frame posterior",
     "twist-dense-no-norm": "dense recipe w/o the layer-normalised CNN",
+    "twist-dense-zero-start": "dense recipe with windows from h = 0 (as the paper)",
+    "twist-dense-shared-draws": "dense recipe with the teacher's sampling draws (as the paper)",
     "twist-scratch": "TWIST, student RSSM from scratch (as the paper)",
     "twist-no-imagined": "TWIST w/o imagined distillation",
     "twist-no-noise": "TWIST w/o action noise",
@@ -90,9 +92,11 @@ STUDENT_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "twist-dense-no-state": ("dense", {"state_weight": 0.0}),
     "twist-dense-no-frame-kl": ("dense", {"frame_post_weight": 0.0}),
     "twist-dense-no-norm": ("dense", {"encoder_norm": "none"}),
+    "twist-dense-zero-start": ("dense", {"window_start": "zero"}),
+    "twist-dense-shared-draws": ("dense", {"shared_draws": True}),
 }
 #: Table I of the paper (held-out backgrounds, 500K frames, paper-scale models on GPU): the
-#: values quoted in our issue tracker. Blank cells are values we have not transcribed.
+#: values as the paper reports them. Blank cells are values not transcribed.
 PAPER_TABLE_I: dict[str, dict[str, float]] = {
     "cartpole-balance": {"oracle": 992.9, "twist": 954.5, "dreamer-dr": 590.8},
     "cup-catch": {"oracle": 936.6, "twist": 856.6, "dreamer-dr": 744.3},
