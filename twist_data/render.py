@@ -1,7 +1,7 @@
 """Fast K-view domain-randomised rendering of a physics state (headless, CPU-friendly).
 
-Design (measured on a 2-core machine with Mesa llvmpipe; see the README's performance
-section): dm_control's ``physics.render`` spends almost all its time on a 2048² shadow map,
+Design (measured on a 2-core machine with Mesa llvmpipe; see docs/performance.md,
+"Rendering"): dm_control's ``physics.render`` spends almost all its time on a 2048² shadow map,
 4x multisampling, the floor's mirror reflection and finely tessellated capsules, of which
 only the multisampling shows at 64x64, on thin geoms (cartpole's pole and rails, the cup's
 string: they alias into stray pixels). ``supersample`` brings that back by rendering

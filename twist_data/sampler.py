@@ -9,7 +9,7 @@
 * ``rare_states`` > 0 replaces the uniform draw by one that favours windows through rarely
   visited states (see :func:`state_rarity`): a teacher that balances a pole fills D with
   nearly identical upright steps and few leaning ones. On cartpole it put more of the pole's
-  state into the student's latent and lowered its return (README, ``rare_states``), so it is
+  state into the student's latent and lowered its return (docs/results.md), so it is
   off by default. Each stream then keeps the cumulative weights of its windows (8 bytes each).
 * Images are decoded on demand into a bounded FIFO arena of decoded frames (``cache_bytes``);
   with uniform access, FIFO evicts as well as LRU and allows vectorised hit lookup. Low-
@@ -210,9 +210,10 @@ class WindowSampler:
             raise SamplerConfigError(f"stream {stream} is out of range for {n_streams} streams")
         self.stream, self.n_streams = stream, n_streams
         spec = self.dataset.spec
-        problem = window_problem(self.dataset, config.length, config.view)
-        if problem is not None and not problem.startswith("window length"):
-            raise SamplerConfigError(problem)  # the length is checked per split below
+        # The view here; the length below, per split (a split may hold only short episodes).
+        problem = window_problem(self.dataset, 1, config.view)
+        if problem is not None:
+            raise SamplerConfigError(problem)
         self._per_view = {a.name: a.per_view for a in step_arrays(spec)}
         unknown = [k for k in config.keys if k not in self._per_view]
         if unknown:

@@ -80,7 +80,7 @@ class DistilConfig:
     paper) or ``mean``, the class probabilities, which makes both filters deterministic, so
     the student's h carries its own errors along the window instead of following the
     teacher's draws; a student so trained acts with ``twist-eval --posterior mean`` (not in
-    the paper; see the README, "Learning results")."""
+    the paper; see docs/results.md)."""
     copy_dynamics: bool = True
     """Start the student's RSSM from the teacher's (False: from scratch, as the paper)."""
     freeze_dynamics: bool = False

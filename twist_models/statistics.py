@@ -109,7 +109,7 @@ def paired_difference(a: np.ndarray, b: np.ndarray) -> PairedDifference:
 
 
 def format_paired(paired: Mapping[str, Any]) -> str:
-    """A :meth:`PairedDifference.as_dict` as the README writes it: ``+12.3 ± 4.5 (7/10)``."""
+    """A :meth:`PairedDifference.as_dict` as the documents write it: ``+12.3 ± 4.5 (7/10)``."""
     spread = paired["standard_error"]
     spread_text = "" if spread is None else f" ± {spread:.1f}"
     return f"{paired['mean']:+.1f}{spread_text} ({paired['better']}/{paired['pairs']})"

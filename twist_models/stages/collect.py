@@ -6,7 +6,7 @@ and its plot ``learning-curve.png``,
 ``latest.pt`` (after every episode), ``teacher-<frames>.pt`` (every ``snapshot_every``
 frames) and ``teacher.pt`` (the final teacher, which ``twist-distil`` picks by default).
 
-Decisions (the README's "twist-collect" section says more):
+Decisions (docs/cli.md, "twist-collect", says more):
 
 * **The teacher's replay is D itself.** Its windows come from a :class:`WindowSampler` on its
   own shard, low-dimensional keys only, refreshed after each commit. What the teacher trained

@@ -80,7 +80,7 @@ AGENTS: dict[str, str] = {
 #: Each student column's distillation: a recipe (``twist_models.distillation.RECIPES``) and what it
 #: changes. The paper's recipe with its from-scratch start and its two ablations, action
 #: matching at the weight measured to help at CPU scale, and the ``dense`` recipe with each
-#: of its parts removed in turn (README, "Recipes").
+#: of its parts removed in turn (docs/design.md, "Recipes").
 STUDENT_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "twist": ("paper", {}),
     "twist-scratch": ("paper", {"copy_dynamics": False}),

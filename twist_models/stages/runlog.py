@@ -115,8 +115,7 @@ class RunFolder:
         return json.loads(self.config_file.read_text()) if self.config_file.exists() else None
 
     def open(self, config: Any, resume: bool, may_change: tuple[str, ...],
-             may_change_options: str = "--steps", also: Sequence[str] = (),
-             other: str = "or another --out") -> None:
+             may_change_options: str = "--steps", also: Sequence[str] = ()) -> None:
         """Before anything is written: create or check the folder; refuse a folder that holds
         a run unless ``resume``; on resume, refuse a ``config`` whose fields outside
         ``may_change`` differ from the stored ones (``also``: further conflicts the stage
@@ -125,7 +124,7 @@ class RunFolder:
         before = self.stored()
         if before is not None and not resume:
             raise self.error(f"{str(self.path)!r} already holds {self.what}; pass --resume to "
-                             f"continue it, {other}")
+                             "continue it, or another --out")
         if resume and before is not None:
             conflicts = resume_conflicts(before[self.section], config, may_change)
             refuse_resume([*conflicts, *also], self.error, may_change_options)
