@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from torch.utils.data import DataLoader
 
 from twist_data.errors import ConfigError
 from twist_data.synth import SynthConfig, write_synthetic_dataset
@@ -490,3 +491,24 @@ def test_mean_filters_are_deterministic_and_act_as_they_were_trained() -> None:
     torch.testing.assert_close(torch.cat(logits), post["logits"][0])
     with pytest.raises(ConfigError, match="filter_read must be one of sample, mean, got 'mode'"):
         distil_preset("tiny", filter_read="mode")
+
+
+def test_a_resident_copy_of_d_feeds_the_loaders_windows(distil_inputs, tmp_path) -> None:
+    from twist_data.sampler import ResidentWindows, WindowDataset
+
+    dataset, teacher = distil_inputs
+    config = distil_preset("tiny", resident_data="on")
+    sampler = config.sampler("train", 7)
+    loader = iter(DataLoader(WindowDataset(dataset, sampler), batch_size=None, num_workers=0))
+    resident = iter(ResidentWindows(dataset, sampler))
+    for _ in range(3):
+        want, got = next(loader), next(resident)
+        for key in ("image", "state", "action", "is_first", "start"):
+            assert torch.equal(got[key], want[key]), key
+    # The run itself trains from it (its torch draws differ: a DataLoader seeds itself from
+    # the global generator, so the losses are not compared).
+    summary = distil(dataset, tmp_path / "on", config, teacher=teacher)
+    losses = pd.read_csv(tmp_path / "on" / "metrics.csv")["loss"]
+    assert len(losses) > 0 and np.isfinite(losses).all() and summary.updates == config.steps
+    with pytest.raises(ConfigError, match="resident_data must be one of"):
+        distil_preset("tiny", resident_data="sometimes")

@@ -226,3 +226,22 @@ def test_sampler_picks_up_episodes_committed_while_it_runs(tmp_path: Path) -> No
     write_synthetic_dataset(tmp_path, SynthConfig(episodes=1, steps=30, image_size=16, seed=9))
     assert sampler.refresh() == 1
     writer.close()
+
+
+def test_resident_windows_are_the_samplers_windows(small_dataset: Path) -> None:
+    from twist_data.sampler import ResidentWindows, resident_bytes
+
+    config = SamplerConfig(length=L, batch_size=5, seed=11,
+                           keys=("image", "state", "action", "is_first"))
+    reference = WindowSampler(small_dataset, config)
+    resident = ResidentWindows(small_dataset, config, device="cpu")
+    for _ in range(3):
+        want, got = reference.batch(), resident.batch()
+        assert set(got) == set(want)
+        for key, value in want.items():
+            assert np.array_equal(got[key].numpy(), value), key
+    data = resident.sampler.dataset
+    image_bytes = data.n_steps * data.spec.views * int(np.prod(data.spec.image_shape))
+    assert resident_bytes(data, ("image",)) == image_bytes == resident.images.numel()
+    with pytest.raises(SamplerConfigError, match="refresh_every must be 0"):
+        ResidentWindows(small_dataset, dataclasses.replace(config, refresh_every=4))

@@ -298,6 +298,21 @@ class WindowSampler:
             index = np.searchsorted(self._cum_priority, self._rng.random(n) * total, side="right")
         return self.flat_to_start(j + p * index)
 
+    def draw(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The next batch's windows without reading them: (global start step [B], global
+        episode [B], steps [B, L], views [B, L]). :meth:`batch` reads what this draws; a
+        reader of another copy of D (:class:`ResidentWindows`) draws the same stream."""
+        cfg = self.config
+        self._batches += 1
+        b, length, k = cfg.batch_size, cfg.length, self.dataset.spec.views
+        starts, episode = self.sample_starts(b)
+        steps = starts[:, None] + np.arange(length)
+        if cfg.view is None:
+            views = self._rng.integers(0, k, (b, length))
+        else:
+            views = np.full((b, length), cfg.view, np.int64)
+        return starts, episode, steps, views
+
     def batch(self, image_out: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The next batch of windows; images are decoded into ``image_out`` when given.
 
@@ -307,14 +322,8 @@ class WindowSampler:
         cfg = self.config
         if cfg.refresh_every and self._batches and self._batches % cfg.refresh_every == 0:
             self.refresh()
-        self._batches += 1
-        b, length, k = cfg.batch_size, cfg.length, self.dataset.spec.views
-        starts, episode = self.sample_starts(b)
-        steps = starts[:, None] + np.arange(length)
-        if cfg.view is None:
-            views = self._rng.integers(0, k, (b, length))
-        else:
-            views = np.full((b, length), cfg.view, np.int64)
+        b, length = cfg.batch_size, cfg.length
+        starts, episode, steps, views = self.draw()
         out: dict[str, np.ndarray] = {}
         for key in cfg.keys:
             if key == "image":
@@ -340,6 +349,73 @@ class WindowSampler:
     def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
         while True:
             yield self.batch()
+
+
+class ResidentWindows:
+    """Windows gathered from a copy of all of D held in one tensor per array on ``device``
+    (images decoded once, uint8): no decoding or host-to-device copy per batch, for a GPU on
+    which D fits. The windows are :class:`WindowSampler`'s stream for the same config, seed
+    and stream, drawn by it and gathered here; D must not grow meanwhile (``refresh_every``
+    0). :func:`resident_bytes` says what the copy needs."""
+
+    def __init__(self, dataset: MatchingDataset | str | os.PathLike[str],
+                 config: SamplerConfig, device: torch.device | str = "cpu",
+                 stream: int = 0, n_streams: int = 1) -> None:
+        if config.refresh_every:
+            raise SamplerConfigError("a resident copy of D cannot follow a growing dataset; "
+                                     f"refresh_every must be 0, got {config.refresh_every}")
+        self.sampler = WindowSampler(dataset, config, stream, n_streams)
+        data, self.device = self.sampler.dataset, torch.device(device)
+        self.columns: dict[str, torch.Tensor] = {}
+        for key in config.keys:
+            if key == "image":
+                continue
+            self.columns[key] = torch.as_tensor(data.column(key)).to(self.device)
+        self.images: torch.Tensor | None = None
+        if "image" in config.keys:
+            spec = data.spec
+            images = np.empty((data.n_steps, spec.views, *spec.image_shape), np.uint8)
+            chunk = np.empty((4096, *spec.image_shape), np.uint8)  # readers fill contiguous rows
+            for view in range(spec.views):
+                for lo in range(0, data.n_steps, len(chunk)):
+                    steps = np.arange(lo, min(lo + len(chunk), data.n_steps))
+                    data.read_frames(steps, np.full(steps.size, view), chunk[:steps.size])
+                    images[steps, view] = chunk[:steps.size]
+            self.images = torch.from_numpy(images).to(self.device)
+
+    def batch(self) -> dict[str, torch.Tensor]:
+        """The next batch as tensors on the device, keys as :meth:`WindowSampler.batch`."""
+        starts, episode, steps, views = self.sampler.draw()
+        index = torch.as_tensor(steps, device=self.device)
+        view = torch.as_tensor(views, device=self.device)
+        out: dict[str, torch.Tensor] = {}
+        for key in self.sampler.config.keys:
+            if key == "image":
+                out[key] = self.images[index, view]
+            elif self.sampler._per_view[key]:
+                out[key] = self.columns[key][index, view]
+            else:
+                out[key] = self.columns[key][index]
+        out.update(view=view, start=torch.as_tensor(starts, device=self.device),
+                   episode=torch.as_tensor(episode, device=self.device))
+        return out
+
+    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+        while True:
+            yield self.batch()
+
+
+def resident_bytes(dataset: MatchingDataset, keys: tuple[str, ...]) -> int:
+    """Bytes a :class:`ResidentWindows` copy of ``dataset``'s ``keys`` takes."""
+    spec, total = dataset.spec, 0
+    for array in step_arrays(spec):
+        if array.name not in keys:
+            continue
+        if array.name == "image":
+            total += dataset.n_steps * spec.views * int(np.prod(spec.image_shape))
+        else:
+            total += dataset.column(array.name).nbytes
+    return total
 
 
 def _rank_and_world(rank: int | None, world_size: int | None) -> tuple[int, int]:

@@ -152,6 +152,11 @@ class DistilConfig:
     """Updates between kept ``student-<updates>.pt`` snapshots."""
     workers: int = 1
     """DataLoader processes decoding windows (0: decode in the training process)."""
+    resident_data: str = "auto"
+    """Gather training windows from a copy of D decoded once on the training device
+    (:class:`twist_data.sampler.ResidentWindows`, the same stream as ``workers=0``): ``on``,
+    ``off``, or ``auto``: on for a CUDA device where the copy takes at most half its free
+    memory, off elsewhere (on a CPU the decode is a few percent of an update)."""
 
     def __post_init__(self) -> None:
         if self.student not in PRESETS:
@@ -172,6 +177,7 @@ class DistilConfig:
         require_choice(self, "encoder_norm", CNN_NORMS)
         require_choice(self, "precision", PRECISIONS)
         require_choice(self, "window_start", WINDOW_STARTS)
+        require_choice(self, "resident_data", ("auto", "on", "off"))
         # The mode has no gradient to train the student's posterior through.
         require_choice(self, "filter_read", ("sample", "mean"))
         if self.view is not None and self.view < 0:

@@ -36,9 +36,11 @@ from torch.utils.data import DataLoader
 from twist_data.errors import TwistError
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.sampler import (
+    ResidentWindows,
     WindowDataset,
     WindowSampler,
     heldout_episodes,
+    resident_bytes,
     window_problem,
 )
 from twist_data.seeding import derived_seed
@@ -275,6 +277,9 @@ class _Run:
         c = self.config
         sampler = c.sampler("train", derived_seed(c.seed, 3, self.updates))
         try:
+            if self._resident(sampler.keys):
+                return iter(ResidentWindows(self.data, sampler, self.device, self.rank,
+                                            self.world))
             windows = WindowDataset(self.dataset_path, sampler)
             loader = DataLoader(windows, batch_size=None, num_workers=c.workers,
                                 pin_memory=self.device.type == "cuda",
@@ -284,10 +289,24 @@ class _Run:
             raise DistilError(f"no training windows: {exc}") from None
         return iter(loader)
 
+    def _resident(self, keys: tuple[str, ...]) -> bool:
+        """Whether training windows come from a copy of D on the device (``resident_data``)."""
+        choice = self.config.resident_data
+        if choice != "auto":
+            return choice == "on"
+        if self.device.type != "cuda":
+            return False
+        free, _ = torch.cuda.mem_get_info(self.device)
+        need = resident_bytes(self.data, keys)
+        log.info("D's windows need %.2f GiB on %s, %.2f GiB free", need / 2**30, self.device,
+                 free / 2**30)
+        return need <= free / 2
+
     def _window_batch(self, windows: Mapping[str, Any]) -> dict[str, torch.Tensor]:
         batch = _to_device(windows, self.device)
         if self.config.window_start == "teacher":
-            start = teacher_latent_before(self.teacher, self.targets, np.asarray(windows["start"]))
+            starts = torch.as_tensor(windows["start"]).cpu().numpy()
+            start = teacher_latent_before(self.teacher, self.targets, starts)
             batch.update(start_deter=start["deter"], start_stoch=start["stoch"])
         return batch
 
