@@ -329,3 +329,29 @@ def test_an_output_that_is_a_file_is_refused_before_any_episode(tmp_path) -> Non
         run_evaluation({"zero": "zero"}, EvalConfig(task="cartpole-balance", episodes=1,
                                                     max_steps=2), [0], afile)
     assert afile.read_text() == "kept"
+
+
+def test_probability_of_improvement_by_hand() -> None:
+    from twist_models.statistics import probability_of_improvement
+
+    # Pairs: 1>0 (1), 1>2 (0), 2>0 (1), 2=2 (1/2): 2.5 / 4.
+    one = probability_of_improvement([np.array([1.0, 2.0])], [np.array([0.0, 2.0])])
+    assert one.estimate == pytest.approx(0.625)
+    assert one.low <= one.estimate <= one.high
+    # Strata count equally: 0.625 and 1.0 (every x above every y) average to 0.8125.
+    two = probability_of_improvement([np.array([1.0, 2.0]), np.array([5.0])],
+                                     [np.array([0.0, 2.0]), np.array([1.0, 2.0, 3.0])])
+    assert two.estimate == pytest.approx(0.8125)
+    same = probability_of_improvement([np.arange(10.0)], [np.arange(10.0)])
+    assert same.estimate == pytest.approx(0.5) and same.low < 0.5 < same.high
+    with pytest.raises(ConfigError, match="strata"):
+        probability_of_improvement([np.ones(3)], [np.ones(3), np.ones(2)])
+
+
+def test_performance_profile_by_hand() -> None:
+    from twist_models.statistics import performance_profile
+
+    strata = [np.array([0.1, 0.5, 0.9]), np.array([0.2, 0.8])]
+    # At 0.5: 1/3 of the first stratum (0.5 itself is not above) and 1/2 of the second.
+    profile = performance_profile(strata, np.array([0.0, 0.5, 1.0]))
+    assert profile == pytest.approx([1.0, (1 / 3 + 1 / 2) / 2, 0.0])

@@ -57,11 +57,18 @@ def test_table_statistics_match_hand_computed_values() -> None:
     assert iqm["runs"] == 6 and iqm["tasks"] == 2
     # The oracle normalised by its own task mean: 0.9, 1.0, 1.1, 1, 1, 1 -> IQM 1.
     assert summary["normalised_iqm"]["oracle"]["iqm"] == pytest.approx(1.0)
+    # P(TWIST run > oracle run), per task over the 3 x 3 pairs, ties half: cartpole 0.8, 0.9,
+    # 1.0 against 0.9, 1.0, 1.1 -> 0.9 ties once (.5), 1.0 beats 0.9 and ties 1.0 (1.5): 2/9;
+    # cup 0.2, 0.8, 1.0 against 1, 1, 1 -> three ties of 1.0: 1.5/9. Mean: 3.5/18.
+    improvement = summary["improvement"]["oracle"]
+    assert improvement["probability"] == pytest.approx(3.5 / 18)
+    assert improvement["tasks"] == 2 and "twist" not in summary["improvement"]
 
     table = markdown_table(summary)
     assert "| cartpole-balance (ours) | 1000.0 ± 81.6 | 900.0 ± 81.6 |" in table
     assert "| cartpole-balance (paper, `paper` scale) | 992.9 | 954.5 |" in table
     assert "| TWIST | 0.875 [" in table
+    assert "| Oracle (teacher on states) | 0.19 [" in table
 
 
 def test_agents_are_paired_with_twist_episode_by_episode_within_each_task() -> None:

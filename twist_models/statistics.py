@@ -113,3 +113,51 @@ def format_paired(paired: Mapping[str, Any]) -> str:
     spread = paired["standard_error"]
     spread_text = "" if spread is None else f" ± {spread:.1f}"
     return f"{paired['mean']:+.1f}{spread_text} ({paired['better']}/{paired['pairs']})"
+
+
+def _strata(strata: Sequence[np.ndarray], name: str) -> tuple[np.ndarray, ...]:
+    groups = tuple(np.asarray(s, np.float64).ravel() for s in strata)
+    if not groups or any(g.size == 0 for g in groups):
+        raise ConfigError(f"every stratum of {name} needs at least one score")
+    return groups
+
+
+def _improvement(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """P(X > Y) + P(X = Y) / 2 for scores x [..., N] and y [..., M] along the last axis."""
+    greater = (x[..., :, None] > y[..., None, :]).mean((-2, -1))
+    ties = (x[..., :, None] == y[..., None, :]).mean((-2, -1))
+    return greater + 0.5 * ties
+
+
+def probability_of_improvement(x: Sequence[np.ndarray], y: Sequence[np.ndarray],
+                               confidence: float = 0.95, resamples: int = 2000,
+                               seed: int = 0) -> Interval:
+    """The probability that a run of agent X scores above a run of agent Y on the same
+    stratum (ties count half), averaged over strata (Agarwal et al., 2021): ``x`` and ``y``
+    hold one 1-D array of scores per stratum (e.g. per task), in the same order. The interval
+    is a stratified percentile bootstrap, resampling each agent's runs within each stratum."""
+    xs, ys = _strata(x, "x"), _strata(y, "y")
+    if len(xs) != len(ys):
+        raise ConfigError(f"x has {len(xs)} strata and y {len(ys)}; they must match")
+    if not 0 < confidence < 1:
+        raise ConfigError(f"confidence must be in (0, 1), got {confidence}")
+    estimate = float(np.mean([_improvement(a, b) for a, b in zip(xs, ys, strict=True)]))
+    rng = np.random.default_rng(seed)
+    draws = np.zeros(resamples)
+    for a, b in zip(xs, ys, strict=True):
+        ra = a[rng.integers(0, a.size, (resamples, a.size))]
+        rb = b[rng.integers(0, b.size, (resamples, b.size))]
+        draws += _improvement(ra, rb)
+    draws /= len(xs)
+    tail = (1 - confidence) / 2
+    low, high = np.quantile(draws, [tail, 1 - tail])
+    return Interval(estimate, float(low), float(high))
+
+
+def performance_profile(strata: Sequence[np.ndarray], thresholds: np.ndarray) -> np.ndarray:
+    """The share of runs scoring above each threshold, averaged over strata so that each
+    stratum counts once (Agarwal et al., 2021, score distributions): ``strata`` one 1-D
+    array of (normalised) scores each, ``thresholds`` [T] -> [T]."""
+    groups = _strata(strata, "scores")
+    tau = np.asarray(thresholds, np.float64).ravel()
+    return np.mean([(g[None, :] > tau[:, None]).mean(1) for g in groups], axis=0)

@@ -52,7 +52,11 @@ from twist_models.stages.evaluation import (
     paired_episodes,
     run_evaluation,
 )
-from twist_models.statistics import format_paired, stratified_bootstrap
+from twist_models.statistics import (
+    format_paired,
+    probability_of_improvement,
+    stratified_bootstrap,
+)
 from twist_models.teacher import FINAL_TEACHER
 
 log = logging.getLogger(__name__)
@@ -310,7 +314,8 @@ def paired_with(episodes: pd.DataFrame, against: str = PAIRED_AGAINST
 def aggregate(results: pd.DataFrame) -> dict[str, Any]:
     """Per task and agent: mean and std over seeds of the run scores; per agent: the IQM of
     oracle-normalised run scores over tasks and seeds with its 95% interval stratified by
-    task. ``results`` has :data:`RESULT_COLUMNS`; every task needs an oracle. A task whose
+    task, and the probability that a TWIST run scores above one of the agent's on the same
+    task (``improvement``). ``results`` has :data:`RESULT_COLUMNS`; every task needs an oracle. A task whose
     oracle's mean score is not positive (a teacher that never learned it) has no ratio to
     normalise by: it keeps its row of raw scores, stays out of the IQM and is listed under
     ``unnormalised_tasks``."""
@@ -340,7 +345,16 @@ def aggregate(results: pd.DataFrame) -> dict[str, Any]:
         interval = stratified_bootstrap(list(by_task.values()))
         iqm[agent] = {"iqm": interval.estimate, "ci95": [interval.low, interval.high],
                       "runs": sum(len(v) for v in by_task.values()), "tasks": len(by_task)}
-    return {"per_task": per_task, "normalised_iqm": iqm, "unnormalised_tasks": unnormalised}
+    improvement = {}
+    base = normalised.get(PAIRED_AGAINST, {})
+    for agent, by_task in normalised.items():
+        tasks = [t for t in by_task if t in base]
+        if agent != PAIRED_AGAINST and tasks:
+            p = probability_of_improvement([base[t] for t in tasks], [by_task[t] for t in tasks])
+            improvement[agent] = {"probability": p.estimate, "ci95": [p.low, p.high],
+                                  "tasks": len(tasks)}
+    return {"per_task": per_task, "normalised_iqm": iqm, "improvement": improvement,
+            "unnormalised_tasks": unnormalised}
 
 
 def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) -> str:
@@ -368,6 +382,13 @@ def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) 
         if s is not None:
             lines.append(f"| {AGENTS[agent]} | {s['iqm']:.3f} [{s['ci95'][0]:.3f}, "
                          f"{s['ci95'][1]:.3f}] | {s['runs']} |")
+    if summary.get("improvement"):
+        lines += ["", f"| Agent | P({AGENTS[PAIRED_AGAINST]} > agent) over runs [95% CI] | tasks |",
+                  "|---|---|---|"]
+        for agent in [a for a in AGENTS if a in summary["improvement"]]:
+            p = summary["improvement"][agent]
+            lines.append(f"| {AGENTS[agent]} | {p['probability']:.2f} [{p['ci95'][0]:.2f}, "
+                         f"{p['ci95'][1]:.2f}] | {p['tasks']} |")
     if summary.get("unnormalised_tasks"):
         lines += ["", "Not normalised, because the oracle's mean score is not positive: "
                   f"{', '.join(summary['unnormalised_tasks'])}."]
