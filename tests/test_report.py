@@ -202,6 +202,7 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
     oracle = episodes.loc[episodes["agent"] == "oracle", "return"].mean()
     assert summary["per_task"]["cartpole-balance"]["oracle"]["mean"] == pytest.approx(oracle)
     assert (tmp_path / "iqm.png").stat().st_size > 0
+    assert (tmp_path / "profiles.png").stat().st_size > 0
     assert "TWIST w/o action noise" in (tmp_path / "report.md").read_text()
     twist_return = episodes.loc[episodes["agent"] == "twist", "return"].iloc[0]
     paired_oracle = summary["paired"]["cartpole-balance"]["oracle"]

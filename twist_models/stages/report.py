@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from twist_data.errors import ConfigError, TwistError
@@ -54,6 +55,7 @@ from twist_models.stages.evaluation import (
 )
 from twist_models.statistics import (
     format_paired,
+    performance_profile,
     probability_of_improvement,
     stratified_bootstrap,
 )
@@ -354,7 +356,7 @@ def aggregate(results: pd.DataFrame) -> dict[str, Any]:
             improvement[agent] = {"probability": p.estimate, "ci95": [p.low, p.high],
                                   "tasks": len(tasks)}
     return {"per_task": per_task, "normalised_iqm": iqm, "improvement": improvement,
-            "unnormalised_tasks": unnormalised}
+            "normalised_runs": normalised, "unnormalised_tasks": unnormalised}
 
 
 def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) -> str:
@@ -427,11 +429,28 @@ def plot_iqm(summary: dict[str, Any], out: str | os.PathLike[str]) -> Path:
     return Path(out)
 
 
+def plot_profiles(summary: dict[str, Any], out: str | os.PathLike[str]) -> Path:
+    """Performance profiles: per agent, the share of runs above each oracle-normalised score,
+    each task counting once (Agarwal et al., 2021)."""
+    runs = summary["normalised_runs"]
+    agents = [a for a in AGENTS if a in runs]
+    top = max([1.0, *(max(max(v) for v in runs[a].values()) for a in agents)])
+    tau = np.linspace(0.0, top, 101)
+    with figure(out, (6.0, 4.0)) as (_, ax):
+        for agent in agents:
+            ax.plot(tau, performance_profile(list(runs[agent].values()), tau), label=AGENTS[agent])
+        ax.set_xlabel("oracle-normalised return τ")
+        ax.set_ylabel("share of runs scoring above τ")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    return Path(out)
+
+
 def build_report(out: str | os.PathLike[str], config: ReportConfig | None = None
                  ) -> dict[str, Any]:
-    """Aggregate the evaluations under ``out`` into ``results.csv``, ``report.md`` and
-    ``iqm.png``; returns the summary of :func:`aggregate` with the paired differences from
-    TWIST of :func:`paired_with` under ``paired``."""
+    """Aggregate the evaluations under ``out`` into ``results.csv``, ``report.md``,
+    ``iqm.png`` and ``profiles.png``; returns the summary of :func:`aggregate` with the paired
+    differences from TWIST of :func:`paired_with` under ``paired``."""
     out = Path(out)
     episodes = collect_episodes(out, config)
     results = run_scores(episodes)
@@ -440,5 +459,6 @@ def build_report(out: str | os.PathLike[str], config: ReportConfig | None = None
     results.to_csv(out / "results.csv", index=False)
     (out / "report.md").write_text(markdown_table(summary, config))
     plot_iqm(summary, out / "iqm.png")
+    plot_profiles(summary, out / "profiles.png")
     return summary
 
