@@ -10,15 +10,14 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 DOCUMENTS = [ROOT / "README.md", ROOT / "datasets.md", *sorted((ROOT / "docs").glob("*.md"))]
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
-ORDINAL = (r"(first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|"
-           r"twelfth|thirteenth|fourteenth|fifteenth|sixteenth|seventeenth|eighteenth|"
-           r"nineteenth|twentieth|twenty-\w+)")
-HISTORY = re.compile(rf"(?i)\b{ORDINAL}\s+(work\s+period|session)s?\b|\bissue\s+#?\d+|"
+#: A spelled-out ordinal, recognised by its ending ("...th", "...st", ...) or written in digits.
+ORDINAL = r"(?:(?:[a-z]+-)?[a-z]+(?:st|nd|rd|th)|\d+(?:st|nd|rd|th))"
+#: Endings that only ordinals from four upwards have (so "(depth)" or "(both)" do not count).
+ORDINAL_ENDING = r"(?:[a-z]+-)?[a-z]+(?:teenth|tieth|enth|inth|fth|xth|hth|urth)"
+HISTORY = re.compile(rf"(?i)\b{ORDINAL}\s+(?:session|work\s+period)s?\b|\bissue\s+#?\d+|"
                      r"\bwork\s+periods?\b|\bthis\s+release\b")
-#: In prose, a bare ordinal in brackets ("(fifteenth)") names a work period too.
-BRACKETED = re.compile(r"(?i)\((fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth|"
-                       r"thirteenth|fourteenth|fifteenth|sixteenth|seventeenth|eighteenth|"
-                       r"nineteenth|twentieth|twenty-\w+)\b[^)]*\)")
+#: In prose, a bare ordinal in brackets names a work period too.
+BRACKETED = re.compile(rf"(?i)\({ORDINAL_ENDING}\b[^)]*\)")
 
 
 def slug(heading: str) -> str:
