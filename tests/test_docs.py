@@ -1,6 +1,7 @@
 """The documents a newcomer reads: links that resolve, a short front page, and text about the
 product rather than about how it was built."""
 
+import functools
 import re
 import subprocess
 from pathlib import Path
@@ -26,6 +27,7 @@ def slug(heading: str) -> str:
     return text.replace(" ", "-")
 
 
+@functools.cache
 def anchors(path: Path) -> set[str]:
     text = re.sub(r"```.*?```", "", path.read_text(), flags=re.S)
     return {slug(m) for m in re.findall(r"(?m)^#+ (.+)$", text)}

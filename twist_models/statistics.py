@@ -39,15 +39,25 @@ class Interval:
     high: float
 
 
+def _strata(strata: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
+    """Each stratum's scores as a flat float64 array; refused when there is none or one is empty."""
+    groups = tuple(np.asarray(s, np.float64).ravel() for s in strata)
+    if not groups or any(g.size == 0 for g in groups):
+        raise ConfigError("every stratum needs at least one score")
+    return groups
+
+
+def _check_confidence(confidence: float) -> None:
+    if not 0 < confidence < 1:
+        raise ConfigError(f"confidence must be in (0, 1), got {confidence}")
+
+
 def stratified_bootstrap(strata: Sequence[np.ndarray], confidence: float = 0.95,
                          resamples: int = 2000, seed: int = 0) -> Interval:
     """IQM of all scores pooled over ``strata`` (1-D arrays, e.g. one per task) with a
     stratified percentile bootstrap interval at ``confidence``."""
-    groups = tuple(np.asarray(s, np.float64).ravel() for s in strata)
-    if not groups or any(g.size == 0 for g in groups):
-        raise ConfigError("every stratum needs at least one score")
-    if not 0 < confidence < 1:
-        raise ConfigError(f"confidence must be in (0, 1), got {confidence}")
+    groups = _strata(strata)
+    _check_confidence(confidence)
 
     # A stratum of one score resamples to itself every time (and scipy refuses samples of one
     # observation), so such strata join every resample as constants.
@@ -115,11 +125,6 @@ def format_paired(paired: Mapping[str, Any]) -> str:
     return f"{paired['mean']:+.1f}{spread_text} ({paired['better']}/{paired['pairs']})"
 
 
-def _strata(strata: Sequence[np.ndarray], name: str) -> tuple[np.ndarray, ...]:
-    groups = tuple(np.asarray(s, np.float64).ravel() for s in strata)
-    if not groups or any(g.size == 0 for g in groups):
-        raise ConfigError(f"every stratum of {name} needs at least one score")
-    return groups
 
 
 def _improvement(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -136,11 +141,10 @@ def probability_of_improvement(x: Sequence[np.ndarray], y: Sequence[np.ndarray],
     stratum (ties count half), averaged over strata (Agarwal et al., 2021): ``x`` and ``y``
     hold one 1-D array of scores per stratum (e.g. per task), in the same order. The interval
     is a stratified percentile bootstrap, resampling each agent's runs within each stratum."""
-    xs, ys = _strata(x, "x"), _strata(y, "y")
+    xs, ys = _strata(x), _strata(y)
     if len(xs) != len(ys):
         raise ConfigError(f"x has {len(xs)} strata and y {len(ys)}; they must match")
-    if not 0 < confidence < 1:
-        raise ConfigError(f"confidence must be in (0, 1), got {confidence}")
+    _check_confidence(confidence)
     estimate = float(np.mean([_improvement(a, b) for a, b in zip(xs, ys, strict=True)]))
     rng = np.random.default_rng(seed)
     draws = np.zeros(resamples)
@@ -158,6 +162,6 @@ def performance_profile(strata: Sequence[np.ndarray], thresholds: np.ndarray) ->
     """The share of runs scoring above each threshold, averaged over strata so that each
     stratum counts once (Agarwal et al., 2021, score distributions): ``strata`` one 1-D
     array of (normalised) scores each, ``thresholds`` [T] -> [T]."""
-    groups = _strata(strata, "scores")
+    groups = _strata(strata)
     tau = np.asarray(thresholds, np.float64).ravel()
     return np.mean([(g[None, :] > tau[:, None]).mean(1) for g in groups], axis=0)

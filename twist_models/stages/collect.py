@@ -479,7 +479,7 @@ class _Run:
 
     # -- state -------------------------------------------------------------------------------
     def _load_or_create_teacher(self, teacher_config: TeacherConfig) -> None:
-        latest = self.folder / "latest.pt"
+        latest = _run_folder(self.folder).latest
         if latest.exists():
             self.teacher, checkpoint = load_teacher(latest, self.env.state_dim,
                                                     self.env.action_dim)
@@ -715,7 +715,7 @@ class _Run:
                  "best_teacher_return": self.best_teacher_return,
                  "frozen_from": self.frozen_from}
         counters = self._counters()
-        latest = save_teacher(self.folder / "latest.pt", self.teacher, counters, extra)
+        latest = save_teacher(_run_folder(self.folder).latest, self.teacher, counters, extra)
         if snapshot:
             save_teacher(self.folder / f"teacher-{self.frames:08d}.pt", self.teacher, counters,
                          extra)
@@ -738,5 +738,5 @@ class _Run:
 
 def stored_config(out: str | os.PathLike[str], shard: str) -> CollectConfig:
     """The collect config a run in ``out`` was started with."""
-    data = json.loads((run_dir(out, shard) / "config.json").read_text())
+    data = json.loads(_run_folder(run_dir(out, shard)).config_file.read_text())
     return from_json(CollectConfig, data["collect"])

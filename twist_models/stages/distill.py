@@ -213,7 +213,8 @@ class _Run:
         self.teacher_path, self.device, self.rank, self.world = teacher_path, device, rank, world
         self.teacher = teacher.to_device(device).eval().requires_grad_(False)
         self.writes = rank == 0
-        latest = out / "latest.pt"
+        self.run_folder = _run_folder(out)
+        latest = self.run_folder.latest
         torch.manual_seed(config.seed)
         self.student = Student(student_config)
         self.optimiser = self._optimiser()
@@ -378,7 +379,7 @@ class _Run:
                                          heldout["h_mse"]))
                 sums, interval = {}, {"train": 0.0, "wait": 0.0, "done": 0}
             if self.updates % c.checkpoint_every == 0 or self.updates == c.steps:
-                self._checkpoint(self.out / "latest.pt")
+                self._checkpoint(self.run_folder.latest)
             if self.updates % c.snapshot_every == 0:
                 self._checkpoint(self.out / f"student-{self.updates:08d}.pt")
                 self._bundle(self.out / f"agent-{self.updates:08d}.pt")
@@ -441,7 +442,7 @@ class _Run:
                                          row["updates_per_s"], 0.0, row["loss"],
                                          heldout["h_mse"]))
                 sums, done, spent = {}, 0, 0.0
-                self._checkpoint(self.out / "latest.pt")
+                self._checkpoint(self.run_folder.latest)
         self.seconds += time.perf_counter() - wall
 
     def _bundle(self, path: Path) -> Path:
@@ -492,5 +493,5 @@ def initialise_distributed(device: str) -> str:
 
 def stored_config(out: str | os.PathLike[str]) -> DistilConfig:
     """The distil config the run in ``out`` was started with."""
-    data = json.loads((Path(out) / "config.json").read_text())
+    data = json.loads(_run_folder(Path(out)).config_file.read_text())
     return from_json(DistilConfig, data["distil"])
