@@ -22,11 +22,9 @@ from twist_models.config import student_preset, teacher_preset
 from twist_models.distillation import RECIPES, Distillation, distil_preset
 from twist_models.frame_targets import (
     FrameBatches,
-    TeacherTargets,
     actor_sensitivity,
     frame_agreement,
     frame_terms,
-    state_component_weights,
     teacher_latent_before,
     teacher_targets,
 )
@@ -127,27 +125,6 @@ def test_teacher_targets_follow_each_episode_from_its_start(
     assert torch.allclose(targets.sensitivity * targets.scale, raw, rtol=1e-4, atol=1e-12)
 
 
-def test_shown_state_weights_by_hand() -> None:
-    # Three steps of a 3-component state laid out as position 2, velocity 1.
-    state = torch.tensor([[0.0, 1.0, 5.0], [2.0, 1.0, -5.0], [4.0, 4.0, 0.0]])
-    sensitivity = torch.tensor([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0], [2.0, 0.0, 1.0]])
-    targets = TeacherTargets(steps=np.arange(3), episode_start=np.zeros(3, np.int64),
-                             state=state, deter=torch.zeros(3, 4), sensitivity=sensitivity,
-                             scale=1.0)
-    layout = (("position", 2), ("velocity", 1))
-    # Component 0: weighted mean (0 + 2 + 8) / 4 = 2.5; weighted spread
-    # (1 * 6.25 + 1 * 0.25 + 2 * 2.25) / 3 = 11 / 3. Component 1: mean 1 (the third step
-    # weighs nothing), spread 0: nothing to teach.
-    weights = state_component_weights(targets, layout, frames=1, mode="shown")
-    assert weights[0] == pytest.approx(3 / 11)
-    assert weights[1] == 0
-    assert weights[2] == 0  # a velocity is not shown by one frame
-    two = state_component_weights(targets, layout, frames=2, mode="shown")
-    assert two[2] == pytest.approx(3 / 50)  # (25 + 25 + 0) / 3, weighted mean 0
-    assert torch.equal(state_component_weights(targets, layout, 1, "sensitivity"),
-                       torch.ones(3))
-
-
 def test_frame_batches_stack_the_steps_before_within_the_episode(
         inputs: tuple[Path, Path, Teacher]) -> None:
     dataset, _, teacher = inputs
@@ -192,7 +169,7 @@ def test_gradients_reach_the_encoder_and_never_the_teacher(
     from twist_data.sampler import WindowSampler
 
     windows = WindowSampler(data, config.sampler("all", 0)).batch()
-    objective = Distillation(student, teacher, config, torch.ones(targets.state.shape[-1]) / targets.scale)
+    objective = Distillation(student, teacher, config, targets.scale)
     loss, terms = objective({k: torch.as_tensor(windows[k]) for k in
                              ("image", "state", "action", "is_first")})
     assert {"frame_post_kl", "state", "h", "post_kl"} <= set(terms)
@@ -257,7 +234,7 @@ def test_a_window_from_the_teachers_latent_continues_its_filter(
     start = teacher_latent_before(teacher, targets, windows["start"])
     batch.update(start_deter=start["deter"], start_stoch=start["stoch"])
     student = Student(student_preset("tiny", teacher.config, 64, norm="layer", state_head=True))
-    objective = Distillation(student, teacher, config, torch.ones(targets.state.shape[-1]) / targets.scale)
+    objective = Distillation(student, teacher, config, targets.scale)
     with torch.no_grad():
         _, t_post, _, _ = objective.filter(batch)
     # The teacher's first h is its GRU on the start latent, so the window follows its filter

@@ -47,7 +47,6 @@ from twist_models.teacher import Teacher
 KEYS = ("image", "state", "action", "is_first")
 PRECISIONS = ("float32", "bfloat16", "auto")
 WINDOW_STARTS = ("zero", "teacher")
-STATE_TARGETS = ("sensitivity", "shown")
 
 @dataclass(frozen=True)
 class DistilConfig:
@@ -119,11 +118,6 @@ class DistilConfig:
     state_weight: float = 0.0
     """Weight of the per-frame state read-out term, each state component weighted by the
     teacher actor's sensitivity to it (adds a linear state head to the student; 0: off)."""
-    state_target: str = "sensitivity"
-    """How the state term weighs the state's components: ``sensitivity`` (each in its own
-    units times the actor's sensitivity: the first-order squared action error) or ``shown``
-    (only the fields a still image shows, each as the share of its sensitivity-weighted
-    variance left unexplained; :func:`~twist_models.frame_targets.state_component_weights`)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -183,7 +177,6 @@ class DistilConfig:
         require_choice(self, "encoder_norm", CNN_NORMS)
         require_choice(self, "precision", PRECISIONS)
         require_choice(self, "window_start", WINDOW_STARTS)
-        require_choice(self, "state_target", STATE_TARGETS)
         require_choice(self, "resident_data", ("auto", "on", "off"))
         # The mode has no gradient to train the student's posterior through.
         require_choice(self, "filter_read", ("sample", "mean"))
@@ -288,14 +281,13 @@ class Distillation(nn.Module):
     the frozen teacher is held outside the module tree: it is neither trained nor synced."""
 
     def __init__(self, student: Student, teacher: Teacher, config: DistilConfig,
-                 state_weights: torch.Tensor | None = None) -> None:
+                 sensitivity_scale: float = 1.0) -> None:
         super().__init__()
         self.student = student
         self._teacher = [teacher.requires_grad_(False)]  # a target: gradients stop at it
         self.config = config
-        # Per-component factors [S] on the actor's raw sensitivity: D's mean sensitivity
-        # (TeacherTargets.scale) and the state target's weights.
-        self.state_weights = state_weights
+        # The per-frame state weights are divided by D's mean sensitivity (TeacherTargets).
+        self.sensitivity_scale = sensitivity_scale
 
     @property
     def teacher(self) -> Teacher:
@@ -349,10 +341,8 @@ class Distillation(nn.Module):
                            state: torch.Tensor) -> dict[str, torch.Tensor]:
         """The per-frame terms at every step of the windows, at the teacher's h there."""
         sensitivity = actor_sensitivity(self.teacher, t_post["deter"], state)
-        if self.state_weights is not None:
-            sensitivity = sensitivity * self.state_weights
         return frame_terms(self.student, self.teacher, embed, t_post["deter"], state,
-                           sensitivity, t_post["logits"])
+                           sensitivity / self.sensitivity_scale, t_post["logits"])
 
     def action_term(self, s_post: dict[str, torch.Tensor], t_post: dict[str, torch.Tensor]
                     ) -> torch.Tensor:

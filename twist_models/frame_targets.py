@@ -83,39 +83,6 @@ class TeacherTargets:
         return int(self.steps.size)
 
 
-#: Names of ``spec.state_layout`` fields that a still image cannot show (rates of change).
-MOTION_FIELDS = ("velocity", "velocities", "angular_velocity")
-
-
-def state_component_weights(targets: TeacherTargets, layout: tuple[tuple[str, int], ...],
-                            frames: int, mode: str) -> torch.Tensor:
-    """Per-component factors [S] applied on top of ``targets.sensitivity`` in the state term.
-
-    ``sensitivity``: ones (each component in its own units, times the actor's sensitivity).
-    ``shown``: each component divided by its sensitivity-weighted variance over ``targets``
-    (so its loss is the share of that variance left unexplained where the actor responds,
-    1 for predicting the weighted mean), and 0 for a component that does not vary there and
-    for ``MOTION_FIELDS`` when ``frames`` is 1.
-    Why: in its own units an unreadable velocity's irreducible error dominates the sum
-    (cartpole: ~95% of the held-out loss is the pole's angular velocity), drowning the lean
-    that a frame does show and that the actor reads."""
-    size = targets.state.shape[-1]
-    if mode == "sensitivity":
-        return torch.ones(size, device=targets.state.device)
-    if mode != "shown":
-        raise ValueError(f"unknown state target {mode!r}")
-    w = targets.sensitivity
-    mean = (w * targets.state).sum(0) / w.sum(0).clamp_min(1e-12)
-    spread = (w * (targets.state - mean) ** 2).mean(0)
-    # A component that does not vary where the actor responds has nothing to teach.
-    factor = torch.where(spread > 1e-12, 1 / spread.clamp_min(1e-12), torch.zeros_like(spread))
-    if frames == 1 and layout:
-        shown = torch.cat([torch.full((n,), float(name not in MOTION_FIELDS))
-                           for name, n in layout]).to(factor.device)
-        factor = factor * shown
-    return factor
-
-
 @torch.no_grad()
 def teacher_targets(teacher: Teacher, data: MatchingDataset, episodes: np.ndarray,
                     read: str = "sample", seed: int = 0, chunk: int = 64) -> TeacherTargets:

@@ -71,7 +71,6 @@ from twist_models.frame_targets import (
     FrameBatches,
     TeacherTargets,
     frame_terms,
-    state_component_weights,
     teacher_latent_before,
     teacher_targets,
 )
@@ -240,15 +239,9 @@ class _Run:
         move_optimiser_state(self.optimiser, device)
         self.targets = (self._teacher_targets()
                         if config.frame_terms or config.window_start == "teacher" else None)
-        state_weights = None
-        if self.targets is not None:
-            factor = state_component_weights(self.targets, data.spec.state_layout,
-                                             config.frames, config.state_target)
-            self.targets = dataclasses.replace(self.targets,
-                                               sensitivity=self.targets.sensitivity * factor)
-            state_weights = factor / self.targets.scale
-        self.objective: nn.Module = Distillation(self.student, self.teacher, config,
-                                                 state_weights)
+        self.objective: nn.Module = Distillation(
+            self.student, self.teacher, config,
+            self.targets.scale if self.targets is not None else 1.0)
         if world > 1:
             self.objective = nn.parallel.DistributedDataParallel(
                 self.objective, device_ids=[device.index] if device.type == "cuda" else None)
