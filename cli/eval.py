@@ -18,6 +18,7 @@ from twist_models.rssm import require_posterior_read
 from twist_models.stages.evaluation import (
     EvalAgent,
     EvalConfig,
+    PolicyAgent,
     StateAgent,
     agents_setting,
     is_reference,
@@ -31,7 +32,8 @@ app = new_app()
 
 def parse_agents(specs: list[str], device: str, posterior: str = "sample"
                  ) -> dict[str, EvalAgent | str]:
-    """``NAME=PATH`` or ``PATH`` (named after its kind and file) -> {name: loaded agent}; a
+    """``NAME=SPEC`` or ``SPEC`` (named after its kind and file, or a policy's attribute) ->
+    {name: loaded agent}; a
     reference agent stays a name (it is sized for the task once that is known)."""
     agents: dict[str, EvalAgent | str] = {}
     for spec in specs:
@@ -41,7 +43,9 @@ def parse_agents(specs: list[str], device: str, posterior: str = "sample"
             name = name or path
         else:
             agent = load_agent(path, device, posterior=posterior)
-        if not name:
+        if not name and isinstance(agent, PolicyAgent):
+            name = path.rpartition(":")[2]
+        elif not name:
             kind = "oracle" if isinstance(agent, StateAgent) else "student"
             name = f"{kind}-{Path(path).stem}"
         if name in agents:
@@ -54,8 +58,8 @@ def parse_agents(specs: list[str], device: str, posterior: str = "sample"
 def main(
     agent: Annotated[list[str], typer.Option(
         help="Teacher checkpoint (the oracle, on states), agent bundle (agent.pt, on "
-             "images) or a reference agent (zero, random), as PATH or NAME=PATH; repeat "
-             "for several.")],
+             "images), a reference agent (zero, random) or module:function, a policy of "
+             "the Gymnasium observations, as SPEC or NAME=SPEC; repeat for several.")],
     task: Annotated[str | None, typer.Option(help="Task [the first agent's].")] = None,
     dr: Annotated[str, typer.Option(help="DR preset of the scenes.")] = "heldout",
     backgrounds: Annotated[Path | None, typer.Option(

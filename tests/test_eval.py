@@ -4,6 +4,7 @@ environment pays, held-out DR is drawn once per episode, bad inputs are refused.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -355,3 +356,42 @@ def test_performance_profile_by_hand() -> None:
     # At 0.5: 1/3 of the first stratum (0.5 itself is not above) and 1/2 of the second.
     profile = performance_profile(strata, np.array([0.0, 0.5, 1.0]))
     assert profile == pytest.approx([1.0, (1 / 3 + 1 / 2) / 2, 0.0])
+
+
+POLICY_MODULE = '''
+import numpy as np
+
+def push(observation):
+    return np.array([0.5], np.float32)
+
+push.observe = ("state",)
+push.task = "cartpole-balance"
+'''
+
+
+def test_an_imported_policy_is_evaluated_like_a_scripted_one(gl, tmp_path, monkeypatch) -> None:
+    (tmp_path / "my_policies.py").write_text(POLICY_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    config = EvalConfig(task="cartpole-balance", dr="none", episodes=2, max_steps=15)
+    policy = load_agent("my_policies:push")
+    assert policy.observe == ("state",) and not policy.uses_images
+    assert ([r.episode_return for r in evaluate(policy, config)]
+            == [r.episode_return for r in evaluate(ScriptedAgent(_constant(0.5)), config)])
+    with pytest.raises(EvalError, match="cannot import module 'no_such_module'"):
+        load_agent("no_such_module:push")
+    with pytest.raises(EvalError, match="has no 'pull'"):
+        load_agent("my_policies:pull")
+
+    # From the CLI: the task comes from the policy, the name from its attribute.
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    result = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent", "my_policies:push",
+                             "--episodes", "1", "--max-steps", "5", "--out", str(tmp_path / "e")],
+                            capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr
+    table = pd.read_csv(tmp_path / "e" / "episodes.csv")
+    assert list(table["agent"]) == ["push"] and list(table["kind"]) == ["policy"]
+    bad = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent", "my_policies:pull",
+                          "--out", str(tmp_path / "f")], capture_output=True, text=True,
+                         timeout=300, env=env)
+    assert bad.returncode == 2 and "has no 'pull'" in bad.stderr
+    assert "Traceback" not in bad.stderr and not (tmp_path / "f").exists()

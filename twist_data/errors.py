@@ -61,3 +61,7 @@ class CheckpointError(TwistError):
 
 class CheckpointMismatchError(CheckpointError):
     """A checkpoint's configuration does not match the model or data it is loaded for."""
+
+
+class MissingExtraError(TwistError, ImportError):
+    """An optional integration was asked for without its extra installed."""

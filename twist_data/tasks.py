@@ -165,6 +165,11 @@ class TaskEnv:
         return int(self._env.action_spec().shape[0])
 
     @property
+    def seconds_per_step(self) -> float:
+        """Simulated seconds per agent step (the task's control step times the repeat)."""
+        return float(self._env.control_timestep()) * self.action_repeat
+
+    @property
     def physics_dim(self) -> int:
         return self._core_dim + sum(row.size for row in self._rows)
 

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib
 import json
 import os
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -167,6 +169,30 @@ class ScriptedAgent:
         return self.policy(step)
 
 
+class PolicyAgent:
+    """Any policy of the observations the Gymnasium environments give
+    (:mod:`twist_data.gym_env`): ``policy({"image": uint8 [H, W, 3], "state": [S]})`` -> action
+    [A], with only the keys of ``observe``; its ``reset()`` is called at each episode's start
+    when it has one. So a policy written against ``gymnasium.make("twist/...")`` is scored by
+    :func:`run_evaluation` on the same scenes and seeds as the toolkit's agents."""
+
+    action_repeat = None
+
+    def __init__(self, policy: Callable[[dict[str, np.ndarray]], np.ndarray],
+                 observe: tuple[str, ...] = ("image", "state"), task: str | None = None) -> None:
+        self.policy, self.observe, self.task = policy, tuple(observe), task
+        self.uses_images = "image" in self.observe
+
+    def reset(self) -> None:
+        reset = getattr(self.policy, "reset", None)
+        if callable(reset):
+            reset()
+
+    def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
+        observation = {"image": image, "state": np.asarray(step.state, np.float32)}
+        return self.policy({k: observation[k] for k in self.observe})
+
+
 #: Agents ``twist-eval --agent NAME`` knows without a file: the floor a trained agent must
 #: clear. On cartpole-balance a pole left alone scores ~750, three quarters of a balancing
 #: oracle (it starts upright and, undamped, spins through the top), which an
@@ -194,11 +220,43 @@ def is_reference(spec: str | os.PathLike[str]) -> bool:
     return str(spec) in REFERENCE_AGENTS and not Path(spec).exists()
 
 
+#: ``module:attribute``, a policy of the Gymnasium observations to import.
+POLICY_SPEC = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
+
+
+def is_policy(spec: str | os.PathLike[str]) -> bool:
+    """Whether an agent ``spec`` names an importable policy (a file of that name wins)."""
+    return bool(POLICY_SPEC.match(str(spec))) and not Path(spec).exists()
+
+
+def policy_agent(spec: str) -> PolicyAgent:
+    """``module:attribute`` -> the :class:`PolicyAgent` of that callable; it may say what it
+    reads (``observe``, default image and state) and its ``task`` as attributes."""
+    module_name, _, attribute = spec.partition(":")
+    try:
+        target: Any = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise EvalError(f"cannot import module {module_name!r} for the policy {spec!r}: "
+                        f"{exc}") from None
+    for part in attribute.split("."):
+        if not hasattr(target, part):
+            raise EvalError(f"module {module_name!r} has no {attribute!r} for the policy "
+                            f"{spec!r}")
+        target = getattr(target, part)
+    if not callable(target):
+        raise EvalError(f"the policy {spec!r} is not callable")
+    return PolicyAgent(target, tuple(getattr(target, "observe", ("image", "state"))),
+                       getattr(target, "task", None))
+
+
 def load_agent(path: str | os.PathLike[str], device: str = "cpu", task: str | None = None,
-               posterior: str = "sample") -> StateAgent | ImageAgent | ScriptedAgent:
+               posterior: str = "sample") -> EvalAgent:
     """A teacher checkpoint becomes the state oracle, an agent bundle the image agent (reading
-    its posterior as ``posterior`` says), and a name from :data:`REFERENCE_AGENTS` that
-    reference policy (it needs ``task``)."""
+    its posterior as ``posterior`` says), a name from :data:`REFERENCE_AGENTS` that
+    reference policy (it needs ``task``), and ``module:attribute`` that imported policy of
+    the Gymnasium observations (:class:`PolicyAgent`)."""
+    if is_policy(path):
+        return policy_agent(str(path))
     if is_reference(path):
         if task is None:
             raise EvalError(f"the reference agent {str(path)!r} needs a task; pass --task or "
@@ -362,11 +420,14 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
 
 
 def agent_kind(agent: EvalAgent) -> str:
-    """``oracle``, ``reference``, ``student`` or the baseline's kind: the ``kind`` column."""
+    """``oracle``, ``reference``, ``policy``, ``student`` or the baseline's kind: the ``kind``
+    column."""
     if isinstance(agent, StateAgent):
         return "oracle"
     if isinstance(agent, ScriptedAgent):
         return "reference"
+    if isinstance(agent, PolicyAgent):
+        return "policy"
     return agent.agent.info.get("baseline", "student")
 
 
