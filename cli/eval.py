@@ -33,8 +33,8 @@ app = new_app()
 def parse_agents(specs: list[str], device: str, posterior: str = "sample"
                  ) -> dict[str, EvalAgent | str]:
     """``NAME=SPEC`` or ``SPEC`` (named after its kind and file, or a policy's attribute) ->
-    {name: loaded agent}; a
-    reference agent stays a name (it is sized for the task once that is known)."""
+    {name: loaded agent}; a reference agent stays a name (it is sized for the task once that
+    is known)."""
     agents: dict[str, EvalAgent | str] = {}
     for spec in specs:
         name, _, path = spec.rpartition("=")
