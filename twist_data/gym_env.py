@@ -24,7 +24,7 @@ import numpy as np
 from twist_data.errors import ConfigError, MissingExtraError
 from twist_data.randomisation import DR_PRESETS, dr_preset
 from twist_data.render import DRRenderer
-from twist_data.seeding import derived_seed
+from twist_data.seeding import evaluation_episode_seed
 from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, TASKS, TaskEnv
 
 try:
@@ -36,17 +36,6 @@ except ImportError:  # pragma: no cover - exercised only without the extra
 
 #: What an observation may hold.
 OBSERVATION_KEYS = ("image", "state")
-#: The DR draws of episode i after ``reset(seed=s)`` are those of ``twist-eval``'s episode i
-#: of seed s: the same stream key (``twist_models.stages.evaluation.evaluate``).
-EPISODE_STREAM = 1 << 20
-
-
-def episode_seed(seed: int, episode: int) -> int:
-    """The seed of episode ``episode`` after ``reset(seed=seed)``, as ``twist-eval`` derives
-    it for its episode ``episode`` of seed ``seed``."""
-    return derived_seed(seed, EPISODE_STREAM, episode)
-
-
 class TwistEnv(gymnasium.Env):
     """One task in one DR preset's scenes, drawn once per episode."""
 
@@ -79,6 +68,7 @@ class TwistEnv(gymnasium.Env):
         self._seed: int | None = None
         self._episode = -1
         self._step = None
+        self._draws: dict[str, np.ndarray] = {}
         self._image: np.ndarray | None = None
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -90,7 +80,7 @@ class TwistEnv(gymnasium.Env):
             if self._seed is None:  # unseeded: Gymnasium's own random seed
                 self._seed = int(self.np_random.integers(2**31))
             self._episode += 1
-        this = episode_seed(self._seed, self._episode)
+        this = evaluation_episode_seed(self._seed, self._episode)
         self._step = self.task.reset(seed=this, dynamics=self._sampler.begin_episode(this))
         self._draws = self._sampler.sample()
         return self._observation(), {"episode": self._episode, "episode_seed": this}

@@ -32,7 +32,7 @@ from twist_data.errors import ConfigError, TwistError
 from twist_data.export import episode_strip, write_video
 from twist_data.randomisation import DR_PRESETS, DRConfig, dr_preset
 from twist_data.render import DRRenderer
-from twist_data.seeding import derived_seed
+from twist_data.seeding import evaluation_episode_seed
 from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Step, TaskEnv, task_spec
 from twist_models.agent import Agent, AgentState
 from twist_models.checkpoint import read_checkpoint
@@ -336,7 +336,7 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
           single_threaded()):
         sampler = renderer.sampler(seed)
         for i in range(config.episodes):
-            episode_seed = derived_seed(seed, 1 << 20, i)
+            episode_seed = evaluation_episode_seed(seed, i)
             step = env.reset(seed=episode_seed, dynamics=sampler.begin_episode(episode_seed))
             agent.reset()
             total, steps = 0.0, 0
