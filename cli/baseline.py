@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from twist_cli.common import new_app, out, progress_bar, run_app
+from twist_cli.common import new_app, print_json, progress_bar, run_app
 from twist_models.device import resolve_device
 from twist_models.stages.baselines import KINDS, BaselineConfig, train_baseline
 from twist_models.stages.baselines import Progress as BaselineProgress
@@ -42,7 +41,7 @@ def main(
     with progress_bar(quiet, "training", describe) as report:
         summary = train_baseline(dataset, folder, config, resume=resume, device=device,
                                  on_progress=report)
-    out.print(json.dumps(summary, indent=2))
+    print_json(summary)
 
 
 def describe(p: BaselineProgress) -> tuple[int, int, str]:

@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import logging
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from twist_cli.common import new_app, out, parse_settings, progress_bar, run_app
+from twist_cli.common import new_app, parse_settings, print_json, progress_bar, run_app
+from twist_data.errors import ConfigError
 from twist_data.tasks import DEFAULT_TASK
+from twist_models.config import replace_fields
 from twist_models.device import resolve_device
 from twist_models.stages.collect import (
     COLLECT_PRESETS,
@@ -22,6 +22,7 @@ from twist_models.stages.collect import (
     stored_config,
 )
 from twist_models.stages.collect import Progress as CollectProgress
+from twist_models.stages.runlog import recorded_config
 
 app = new_app()
 
@@ -36,9 +37,13 @@ def main(
     out_dir: Annotated[Path, typer.Option("--out", help="Dataset folder (created if needed).")],
     task: Annotated[str | None, typer.Option(
         help=f"DMC task (see `twist-data tasks`) [{DEFAULT_TASK}].")] = None,
-    preset: Annotated[str, typer.Option(
+    preset: Annotated[str | None, typer.Option(
         help=f"Sizes and schedule: {', '.join(COLLECT_PRESETS)}; a resumed run keeps its "
-             "own.")] = "quick",
+             "own [quick].")] = None,
+    config_file: Annotated[Path | None, typer.Option(
+        "--config", help="Start from the config a collector run recorded (its config.json "
+                         "or folder) instead of --preset; options and --set apply on top.")
+    ] = None,
     frames: Annotated[int | None, typer.Option(
         help="Environment frames to collect, learning and frozen (default: the preset's).")
     ] = None,
@@ -69,14 +74,19 @@ def main(
     if resume and (run_dir(out_dir, name) / "config.json").exists():
         # A resumed run keeps its stored config; flags given again must agree with it
         # (collect() refuses any difference but --frames).
-        config = dataclasses.replace(stored_config(out_dir, name), **given)
+        config = replace_fields(stored_config(out_dir, name), given)
+    elif config_file is not None:
+        if preset is not None:
+            raise ConfigError("--config gives the preset; change its fields with --set "
+                              "instead of passing --preset")
+        config = replace_fields(recorded_config(config_file, "collect", CollectConfig), given)
     else:
-        config = collect_preset(preset, **given)
+        config = collect_preset(preset or "quick", **given)
     resolve_device(device)  # before the bar: a refusal is then the only line printed
     with progress_bar(quiet, "collecting", describe) as report:
         summary = collect(out_dir, config, shard=name, resume=resume, device=device,
                           on_progress=report)
-    out.print(json.dumps(summary.to_json(), indent=2))
+    print_json(summary.to_json())
 
 
 def describe(p: CollectProgress) -> tuple[int, int, str]:

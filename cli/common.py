@@ -17,12 +17,19 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 
 from twist_data.errors import ConfigError, TwistError
+from twist_models.config import field_types, from_json
 
 P = TypeVar("P")
 T = TypeVar("T")
 
 out = Console()
 err = Console(stderr=True)
+
+
+def print_json(value: Any, indent: int | None = 2) -> None:
+    """``value`` as JSON on stdout, exactly: never wrapped at the terminal's width, nor read
+    as Rich markup (a long path or a list in brackets would otherwise break the JSON)."""
+    out.print(json.dumps(value, indent=indent), markup=False, highlight=False, soft_wrap=True)
 
 
 def new_app(**settings: Any) -> typer.Typer:
@@ -75,10 +82,11 @@ def parse_list(text: str, kind: Callable[[str], T], option: str) -> list[T]:
 
 
 def parse_settings(pairs: list[str], config_type: type) -> dict[str, Any]:
-    """``--set KEY=VALUE`` options as overrides of ``config_type``'s fields; each VALUE is read
-    as JSON (numbers, true/false, null) or else taken as a string."""
-    fields = {f.name for f in dataclasses.fields(config_type)}
-    hints = typing.get_type_hints(config_type)
+    """``--set KEY=VALUE`` options as overrides of ``config_type``'s fields (a nested config's
+    by dotted keys, ``optim.grad_clip=50``), for :func:`~twist_models.config.replace_fields`;
+    each VALUE is read as JSON (numbers, true/false, null) or else taken as a string."""
+    hints = field_types(config_type)
+    fields = set(hints)
     settings: dict[str, Any] = {}
     for pair in pairs:
         key, sep, text = pair.partition("=")
@@ -103,6 +111,12 @@ def typed_setting(key: str, value: Any, text: str, hint: Any) -> Any:
         else (hint,)
     if value is None and type(None) in allowed:
         return None
+    nested = [kind for kind in allowed if dataclasses.is_dataclass(kind)]
+    if nested:
+        if not isinstance(value, dict):
+            raise ConfigError(f"--set {key} must be a JSON object of {nested[0].__name__} "
+                              f"fields, got {text!r}")
+        return from_json(nested[0], value)
     if str in allowed:
         return text
     for kind in (bool, int, float):

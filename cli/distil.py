@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import logging
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from twist_cli.common import new_app, out, parse_settings, progress_bar, run_app
+from twist_cli.common import new_app, parse_settings, print_json, progress_bar, run_app
+from twist_data.errors import ConfigError
+from twist_models.config import replace_fields
 from twist_models.device import resolve_device
 from twist_models.distillation import DISTIL_PRESETS, RECIPES, DistilConfig, distil_preset
 from twist_models.stages.distill import Progress as DistilProgress
 from twist_models.stages.distill import distil, initialise_distributed, stored_config
+from twist_models.stages.runlog import recorded_config
 
 app = new_app()
 
@@ -26,11 +27,15 @@ def main(
         "--out", help="Run folder [<dataset>/distil].")] = None,
     teacher: Annotated[Path | None, typer.Option(
         help="Teacher checkpoint [the dataset's final teacher].")] = None,
-    preset: Annotated[str, typer.Option(
-        help=f"Student sizes and schedule: {', '.join(DISTIL_PRESETS)}.")] = "quick",
-    recipe: Annotated[str, typer.Option(
-        help=f"Distillation recipe: {', '.join(RECIPES)} (docs/design.md, 'Recipes').")
-    ] = "paper",
+    preset: Annotated[str | None, typer.Option(
+        help=f"Student sizes and schedule: {', '.join(DISTIL_PRESETS)} [quick].")] = None,
+    recipe: Annotated[str | None, typer.Option(
+        help=f"Distillation recipe: {', '.join(RECIPES)} (docs/design.md, 'Recipes') "
+             "[paper].")] = None,
+    config_file: Annotated[Path | None, typer.Option(
+        "--config", help="Start from the config a distillation run recorded (its "
+                         "config.json or folder) instead of --preset and --recipe; options "
+                         "and --set apply on top.")] = None,
     steps: Annotated[int | None, typer.Option(help="Student updates.")] = None,
     batch: Annotated[int | None, typer.Option(help="Windows per update [the preset's].")] = None,
     length: Annotated[int | None, typer.Option(help="Steps per window L [the preset's].")] = None,
@@ -64,16 +69,21 @@ def main(
         "copy_dynamics": False if scratch_dynamics else None,
         "view": view, "workers": workers, "seed": seed}.items() if v is not None}
     given.update(parse_settings(settings or [], DistilConfig))
+    if config_file is not None and (preset is not None or recipe is not None):
+        raise ConfigError("--config gives the preset and the recipe; change its fields with "
+                          "--set instead of passing --preset or --recipe")
     if resume and (folder / "config.json").exists():
-        config = dataclasses.replace(stored_config(folder), **given)
+        config = replace_fields(stored_config(folder), given)
+    elif config_file is not None:
+        config = replace_fields(recorded_config(config_file, "distil", DistilConfig), given)
     else:
-        config = distil_preset(preset, recipe, **given)
+        config = distil_preset(preset or "quick", recipe or "paper", **given)
     device = initialise_distributed(device)
     resolve_device(device)  # before the bar: a refusal is then the only line printed
     with progress_bar(quiet, "distilling", describe) as report:
         summary = distil(dataset, folder, config, teacher=teacher, resume=resume, device=device,
                          on_progress=report)
-    out.print(json.dumps(summary.to_json(), indent=2))
+    print_json(summary.to_json())
 
 
 def describe(p: DistilProgress) -> tuple[int, int, str]:

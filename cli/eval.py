@@ -3,7 +3,6 @@ simulator, on held-out scenes by default."""
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Annotated
@@ -11,7 +10,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twist_cli.common import new_app, out, parse_list, run_app
+from twist_cli.common import new_app, out, parse_list, print_json, run_app
 from twist_data.errors import ConfigError
 from twist_data.tasks import DEFAULT_ACTION_REPEAT
 from twist_models.rssm import require_posterior_read
@@ -111,7 +110,7 @@ def main(
             cells.append(format_paired(s["paired"]) if "paired" in s else "")
         table.add_row(*cells)
     out.print(table)
-    out.print(json.dumps(summary))
+    print_json(summary, indent=None)
 
 
 def entry() -> None:

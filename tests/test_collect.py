@@ -29,12 +29,14 @@ from twist_data.writer import ShardWriter
 from twist_models.checkpoint import read_checkpoint
 from twist_models.policies import Pushes
 from twist_models.stages.collect import (
+    CollectConfig,
     CollectError,
     collect,
     collect_preset,
     shard_seed,
 )
 from twist_models.stages.evaluation import load_agent
+from twist_models.stages.runlog import recorded_config
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, find_teacher, load_teacher
 
 pytestmark = pytest.mark.usefixtures("gl")
@@ -103,6 +105,16 @@ def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> 
     for name in (FINAL_TEACHER, BEST_TEACHER, "latest.pt"):
         oracle = load_agent(runs / name)
         assert (oracle.task, oracle.action_repeat) == (config.task, config.action_repeat), name
+    # The recorded config starts another run as this one was; another kind's is refused.
+    assert recorded_config(runs, "collect", CollectConfig) == config
+    distil_config = tmp_path / "distil.json"
+    distil_config.write_text('{"distil": {"steps": 3}}')
+    refused = subprocess.run([*COLLECT, "--out", str(tmp_path / "again"), "--config",
+                              str(distil_config)], capture_output=True, text=True)
+    assert refused.returncode == 2 and refused.stderr.strip() == (
+        f"error: config file {str(distil_config)!r} is a distil run's config; this command "
+        "starts from a collect run's")
+    assert not (tmp_path / "again").exists()
 
 
 def test_sigkilled_cli_run_resumes_without_duplicates_or_losses(tmp_path: Path) -> None:

@@ -23,8 +23,14 @@ from torch.utils.data import DataLoader
 from twist_data.errors import ConfigError
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
-from twist_models.config import student_preset, teacher_preset, to_json
-from twist_models.distillation import Distillation, distil_preset, latent_agreement
+from twist_models.config import (
+    field_types,
+    replace_fields,
+    student_preset,
+    teacher_preset,
+    to_json,
+)
+from twist_models.distillation import DistilConfig, Distillation, distil_preset, latent_agreement
 from twist_models.losses import distillation_loss, imagined_distillation_loss
 from twist_models.stages.distill import DistilError, distil, load_student, stored_config
 from twist_models.stages.runlog import append_csv, resume_conflicts
@@ -292,6 +298,44 @@ def test_cli_resumes_after_sigkill_and_continues_the_count(distil_inputs, tmp_pa
     assert refused.returncode == 2 and "length was 8, now 6" in refused.stderr
 
 
+def test_a_run_starts_from_a_recorded_config_with_overrides(distil_inputs, tmp_path) -> None:
+    dataset, teacher = distil_inputs
+    base = ["--dataset", str(dataset), "--teacher", str(teacher), "--quiet"]
+    first = tmp_path / "first"
+    done = _cli(*base, "--out", str(first), "--preset", "tiny", "--recipe", "dense",
+                "--steps", "2")
+    assert done.returncode == 0, done.stderr
+    recorded = stored_config(first)
+    second = tmp_path / "second"
+    result = _cli(*base, "--out", str(second), "--config", str(first / "config.json"),
+                  "--steps", "3", "--set", "optim.grad_clip=7", "--set", "lr=0.001")
+    assert result.returncode == 0, result.stderr
+    # Every recorded field carries over (the dense recipe's included); the nested override
+    # changes one field of the optimiser's config and keeps the others.
+    expected = dataclasses.replace(recorded, steps=3, lr=1e-3, optim=dataclasses.replace(
+        recorded.optim, grad_clip=7.0))
+    assert stored_config(second) == expected and expected.recipe == "dense"
+    assert json.loads(result.stdout)["updates"] == 3
+
+    other_kind = tmp_path / "collect.json"
+    other_kind.write_text(json.dumps({"collect": {"task": "cartpole-balance"}}))
+    refusals = {
+        "is a collect run's config; this command starts from a distil run's":
+            ["--config", str(other_kind)],
+        "does not exist": ["--config", str(tmp_path / "missing.json")],
+        "--config gives the preset and the recipe": ["--config", str(first), "--recipe",
+                                                     "paper"],
+        "KEY one of": ["--config", str(first), "--set", "optim.nope=1"],
+    }
+    for i, (expected_text, args) in enumerate(refusals.items()):
+        out = tmp_path / f"refused-{i}"
+        refused = _cli(*base, "--out", str(out), *args)
+        lines = [line for line in refused.stderr.splitlines() if line.strip()]
+        assert refused.returncode == 2 and len(lines) == 1, refused.stderr
+        assert expected_text in lines[0], lines[0]
+        assert not out.exists()
+
+
 def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
     dataset, teacher = distil_inputs
     base = ["--dataset", str(dataset), "--preset", "tiny", "--quiet"]
@@ -512,3 +556,18 @@ def test_a_resident_copy_of_d_feeds_the_loaders_windows(distil_inputs, tmp_path)
     assert len(losses) > 0 and np.isfinite(losses).all() and summary.updates == config.steps
     with pytest.raises(ConfigError, match="resident_data must be one of"):
         distil_preset("tiny", resident_data="sometimes")
+
+
+def test_replace_fields_reaches_nested_configs_and_names_unknown_fields() -> None:
+    config = distil_preset("tiny")
+    changed = replace_fields(config, {"steps": 9, "optim.eps": 1e-3})
+    assert changed.steps == 9 and changed.optim.eps == 1e-3
+    assert changed.optim.grad_clip == config.optim.grad_clip  # the nested rest is kept
+    assert dataclasses.replace(changed, steps=config.steps, optim=config.optim) == config
+    with pytest.raises(ConfigError, match=r"^OptimConfig has no field 'nope'$"):
+        replace_fields(config, {"optim.nope": 1})
+    with pytest.raises(ConfigError, match=r"DistilConfig.steps is not a nested config"):
+        replace_fields(config, {"steps.x": 1})
+    with pytest.raises(ConfigError, match="grad_clip must be > 0"):
+        replace_fields(config, {"optim.grad_clip": 0.0})  # the nested config's own checks
+    assert "optim.grad_clip" in field_types(DistilConfig)

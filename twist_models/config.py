@@ -390,3 +390,41 @@ def from_json(cls: type[T], data: Mapping[str, Any]) -> T:
         kwargs[name] = value
     return cls(**kwargs)
 
+
+
+def field_types(config_type: type) -> dict[str, Any]:
+    """Every settable field of the config dataclass ``config_type`` and its annotation, a
+    nested config's fields under dotted names (``optim.grad_clip``) beside the nested config
+    itself."""
+    types: dict[str, Any] = {}
+    for name, hint in typing.get_type_hints(config_type).items():
+        if name not in {f.name for f in dataclasses.fields(config_type)}:
+            continue
+        types[name] = hint
+        if dataclasses.is_dataclass(hint):
+            types.update({f"{name}.{k}": v for k, v in field_types(hint).items()})
+    return types
+
+
+def replace_fields(config: T, settings: Mapping[str, Any]) -> T:
+    """``config`` with the fields in ``settings`` replaced; a dotted key (``optim.grad_clip``)
+    replaces a field of a nested config and keeps its other fields. An unknown field is a
+    :class:`ConfigError` naming it."""
+    top: dict[str, Any] = {}
+    nested: dict[str, dict[str, Any]] = {}
+    names = {f.name for f in dataclasses.fields(config)}  # type: ignore[arg-type]
+    for key, value in settings.items():
+        head, dot, rest = key.partition(".")
+        if head not in names:
+            raise ConfigError(f"{type(config).__name__} has no field {key!r}")
+        if dot:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            top[head] = value
+    for head, inner in nested.items():
+        base = top.get(head, getattr(config, head))
+        if not dataclasses.is_dataclass(base):
+            raise ConfigError(f"{type(config).__name__}.{head} is not a nested config, so "
+                              f"{head}.{next(iter(inner))} cannot be set")
+        top[head] = replace_fields(base, inner)
+    return dataclasses.replace(config, **top)  # type: ignore[type-var]

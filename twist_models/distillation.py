@@ -30,6 +30,7 @@ from twist_models.config import (
     CNN_NORMS,
     PRESETS,
     OptimConfig,
+    replace_fields,
     require_choice,
     require_non_negative,
     require_positive,
@@ -232,7 +233,8 @@ DISTIL_PRESETS: dict[str, DistilConfig] = {
 
 def distil_preset(name: str, recipe: str = "paper", **overrides: Any) -> DistilConfig:
     """Size preset ``name`` with ``recipe``'s settings (:data:`RECIPES`), then fields replaced
-    by ``overrides`` (None values are ignored)."""
+    by ``overrides`` (None values are ignored; dotted keys reach nested configs, as
+    :func:`~twist_models.config.replace_fields`)."""
     if name not in DISTIL_PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: "
                           f"{', '.join(DISTIL_PRESETS)}")
@@ -242,7 +244,7 @@ def distil_preset(name: str, recipe: str = "paper", **overrides: Any) -> DistilC
     if recipe == "dense":
         settings["frame_steps"] = FRAME_STEPS[name]
     settings.update({k: v for k, v in overrides.items() if v is not None})
-    return dataclasses.replace(DISTIL_PRESETS[name], **settings)
+    return replace_fields(DISTIL_PRESETS[name], settings)
 
 
 # -- one update ---------------------------------------------------------------------------------

@@ -60,6 +60,7 @@ from twist_models.config import (
     PRESETS,
     TeacherConfig,
     from_json,
+    replace_fields,
     require_non_negative,
     require_positive,
     teacher_preset,
@@ -297,7 +298,7 @@ def collect_preset(name: str, **overrides: Any) -> CollectConfig:
     if name not in COLLECT_PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: "
                           f"{', '.join(COLLECT_PRESETS)}")
-    return dataclasses.replace(COLLECT_PRESETS[name], **_given(**overrides))
+    return replace_fields(COLLECT_PRESETS[name], _given(**overrides))
 
 
 def _given(**values: Any) -> dict[str, Any]:

@@ -11,10 +11,12 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from twist_data.errors import TwistError
-from twist_models.config import to_json
+from twist_data.errors import ConfigError, TwistError
+from twist_models.config import from_json, to_json
+
+T = TypeVar("T")
 
 
 def append_csv(path: Path, row: dict[str, Any], columns: tuple[str, ...]) -> None:
@@ -138,3 +140,29 @@ class RunFolder:
         partial = self.config_file.with_suffix(".json.partial")
         partial.write_text(json.dumps(sections, indent=2))
         os.replace(partial, self.config_file)
+
+
+def recorded_config(path: str | os.PathLike[str], section: str, config_type: type[T]) -> T:
+    """The ``config_type`` config that a run recorded under ``section`` of its
+    ``config.json`` (``path``: the file or the run's folder), to start another run from. A
+    missing or unreadable file, or the config of another kind of run, is a
+    :class:`ConfigError` naming the file."""
+    path = Path(path)
+    file = path / "config.json" if path.is_dir() else path
+    if not file.is_file():
+        raise ConfigError(f"config file {str(file)!r} does not exist")
+    try:
+        data = json.loads(file.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"config file {str(file)!r} is not a run's JSON config: {exc}"
+                          ) from None
+    if not isinstance(data, dict) or section not in data:
+        kinds = [k for k in ("collect", "distil", "baseline")
+                 if isinstance(data, dict) and k in data]
+        what = f"a {kinds[0]} run's config" if kinds else "not a twist run's config"
+        raise ConfigError(f"config file {str(file)!r} is {what}; this command starts from a "
+                          f"{section} run's")
+    try:
+        return from_json(config_type, data[section])
+    except (ConfigError, TypeError, ValueError) as exc:
+        raise ConfigError(f"config file {str(file)!r}: {exc}") from None
