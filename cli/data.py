@@ -165,6 +165,29 @@ def export_hdf5_cmd(
     out.print(f"wrote {path}")
 
 
+@app.command("export-minari")
+def export_minari_cmd(
+    dataset: DatasetArg,
+    dataset_id: Annotated[str, typer.Argument(
+        metavar="DATASET_ID", help="Minari dataset ID, [namespace/]name-v<version>, e.g. "
+                                   "twist/cartpole-balance-v0.")],
+    root: Annotated[Path | None, typer.Option(
+        help="Minari's dataset root [$MINARI_DATASETS_PATH, else ~/.minari/datasets].")] = None,
+    overwrite: Annotated[bool, typer.Option(
+        "--overwrite", help="Replace a Minari dataset of that ID.")] = False,
+    jpeg: Annotated[bool, typer.Option(
+        "--jpeg", help="Store images as JPEG (smaller, lossy) [lossless].")] = False,
+) -> None:
+    """Write every committed episode as a Minari dataset (Gymnasium's convention; needs the
+    minari extra), for offline-RL libraries that read Minari."""
+    from twist_data.minari_export import export_minari
+
+    with progress_bar("exporting") as update:
+        path = export_minari(dataset, dataset_id, root=root, overwrite=overwrite, jpeg=jpeg,
+                             on_progress=update)
+    out.print(f"wrote {path}")
+
+
 @app.command()
 def synth(
     out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="Dataset folder to create.")],
