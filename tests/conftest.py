@@ -40,3 +40,19 @@ def gl() -> None:
         DRRenderer("cartpole-balance", dr_preset("none"), 8, 1).close()
     except RenderUnavailableError as exc:
         pytest.skip(f"no offscreen OpenGL on this machine: {exc}")
+
+
+def board_events(run: Path) -> tuple[dict[str, list[tuple[int, float]]],
+                                     dict[str, list[tuple[int, tuple[int, int]]]]]:
+    """What a run's TensorBoard files hold, read back through TensorBoard's own reader:
+    ({scalar tag: [(step, value)]}, {image tag: [(step, (height, width))]}). Skips the test
+    when the tensorboard extra is not installed."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"images": 0}).Reload()
+    tags = events.Tags()
+    scalars = {t: [(e.step, e.value) for e in events.Scalars(t)] for t in tags["scalars"]}
+    images = {t: [(e.step, (e.height, e.width)) for e in events.Images(t)]
+              for t in tags["images"]}
+    return scalars, images

@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 import torch
 
+from tests.conftest import board_events
 from twist_data.sampler import SamplerConfig, WindowSampler
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
@@ -40,7 +41,12 @@ def test_baseline_learns_and_bundles_its_own_encoder_and_actor(dataset, tmp_path
                             imag_starts=16, log_every=20, checkpoint_every=30, holdout_every=4)
     summary = train_baseline(dataset, tmp_path / kind, config)
     assert summary["updates"] == 60
-    assert list(pd.read_csv(tmp_path / kind / "metrics.csv")["updates"]) == [20, 40, 60]
+    metrics = pd.read_csv(tmp_path / kind / "metrics.csv")
+    assert list(metrics["updates"]) == [20, 40, 60]
+    scalars, _ = board_events(tmp_path / kind)
+    assert scalars["train/model_loss"] == [
+        (s, pytest.approx(v)) for s, v in zip(metrics["updates"], metrics["model_loss"],
+                                               strict=True)]
 
     checkpoint = read_checkpoint(tmp_path / kind / "latest.pt", kind="dreamer")
     model_config = from_json(DreamerConfig, checkpoint.config)

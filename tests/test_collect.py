@@ -19,6 +19,7 @@ import pytest
 import torch
 import zarr
 
+from tests.conftest import board_events
 from twist_data.errors import ConfigError, UnknownTaskError
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.schema import ATTRS_KEY
@@ -101,6 +102,10 @@ def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> 
         floor.append(total)
     assert summary.zero_action_return == pytest.approx(np.mean(floor))
     assert evals["zero_action_return"].tolist() == [summary.zero_action_return] * len(evals)
+    scalars, images = board_events(runs)
+    assert scalars["eval/return"] == [
+        (f, pytest.approx(r)) for f, r in zip(evals["frames"], evals["return_mean"], strict=True)]
+    assert [s for s, _ in images["eval/learning-curve"]] == list(evals["frames"])
     # Every teacher checkpoint names its task and action repeat: twist-eval needs no --task.
     for name in (FINAL_TEACHER, BEST_TEACHER, "latest.pt"):
         oracle = load_agent(runs / name)

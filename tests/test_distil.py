@@ -14,12 +14,14 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 import pytest
 import torch
 from torch.utils.data import DataLoader
 
+from tests.conftest import board_events
 from twist_data.errors import ConfigError
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
@@ -212,6 +214,13 @@ def test_short_run_improves_agreement_and_writes_an_agent(distil_inputs, tmp_pat
     metrics = pd.read_csv(tmp_path / "run" / "metrics.csv")
     assert list(metrics["updates"]) == [20, 40] and (metrics["data_wait_share"] < 1).all()
     assert (tmp_path / "run" / "latent-agreement.png").stat().st_size > 0
+    # The TensorBoard record (the tensorboard extra) holds what the CSV files hold, and the plot.
+    scalars, images = board_events(tmp_path / "run")
+    assert [s for s, _ in scalars["heldout/h_mse"]] == [0, 20, 40]
+    assert [v for _, v in scalars["heldout/h_mse"]] == pytest.approx(list(heldout["h_mse"]))
+    assert [v for _, v in scalars["train/loss"]] == pytest.approx(list(metrics["loss"]))
+    plot = cv2.imread(str(tmp_path / "run" / "latent-agreement.png"))
+    assert images["heldout/latent-agreement"] == [(s, plot.shape[:2]) for s in (0, 20, 40)]
 
     # The teacher file is untouched, and the bundle acts like student filter + teacher actor.
     student, extra = load_student(summary.student)

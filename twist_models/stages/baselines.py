@@ -20,7 +20,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,7 +47,7 @@ from twist_models.config import (
 )
 from twist_models.device import resolve_device
 from twist_models.dreamer import Dreamer
-from twist_models.stages.runlog import RunFolder, append_csv
+from twist_models.stages.runlog import Board, RunFolder, append_csv
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +157,26 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
                                   num_workers=config.workers))
     except TwistError as exc:
         raise BaselineError(f"no training windows: {exc}") from None
+    board = Board(Path(out))
+    try:
+        _train(model, windows, config, dreamer_config, latest, Path(out), board, device,
+               on_progress)
+    finally:
+        board.close()
+    agent = image_agent(model, {**spec.image_agent_info(), "dataset": str(dataset),
+                                "baseline": config.kind, "updates": int(model.step)})
+    path = agent.save(out / "agent.pt")
+    summary = {"kind": config.kind, "updates": int(model.step), "agent": str(path),
+               "out": str(out)}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _train(model: Dreamer, windows: Iterator[dict[str, torch.Tensor]], config: BaselineConfig,
+           dreamer_config: DreamerConfig, latest: Path, out: Path, board: Board, device: str,
+           on_progress: Callable[[Progress], None] | None) -> None:
+    """Updates until ``config.steps``: a metrics row (and TensorBoard scalars) every
+    ``log_every``, a checkpoint every ``checkpoint_every``."""
     sums: dict[str, float] = {}
     done, tick = 0, time.perf_counter()
     while int(model.step) < config.steps:
@@ -170,6 +190,9 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
             row = {"updates": updates, "wall_s": round(elapsed, 2),
                    "updates_per_s": done / elapsed, **{k: v / done for k, v in sums.items()}}
             append_csv(out / "metrics.csv", row, METRIC_COLUMNS)
+            for key, value in row.items():
+                if key not in ("updates", "wall_s"):
+                    board.scalar(f"train/{key}", value, updates)
             if on_progress is not None:
                 on_progress(Progress(updates, config.steps, row["updates_per_s"],
                                      row["model_loss"]))
@@ -177,13 +200,6 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
         if updates % config.checkpoint_every == 0 or updates == config.steps:
             save_checkpoint(latest, "dreamer", model, dreamer_config, model.optimisers(),
                             {"updates": updates})
-    agent = image_agent(model, {**spec.image_agent_info(), "dataset": str(dataset),
-                                "baseline": config.kind, "updates": int(model.step)})
-    path = agent.save(out / "agent.pt")
-    summary = {"kind": config.kind, "updates": int(model.step), "agent": str(path),
-               "out": str(out)}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    return summary
 
 
 def image_agent(model: Dreamer, info: dict[str, Any]) -> Agent:

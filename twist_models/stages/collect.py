@@ -413,7 +413,10 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
         with writer:
             run = _Run(out, path, folder, config, teacher_config, env, renderer, writer, seed,
                        torch_device, student)
-            return run.loop(on_progress)
+            try:
+                return run.loop(on_progress)
+            finally:
+                run.board.close()
 
 
 def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
@@ -653,10 +656,11 @@ class _Run:
                "zero_action_return": floor}
         append_csv(self.folder / "eval.csv", row, tuple(row))
         self.board.scalar("eval/return", row["return_mean"], self.frames)
-        plot_learning_curves({f"{self.path.name} (seed {c.seed})": self.folder / "eval.csv"},
-                             self.folder / "learning-curve.png",
-                             f"{c.task}, {c.model} teacher on state, mode action",
-                             {"zero actions": floor})
+        plot = plot_learning_curves(
+            {f"{self.path.name} (seed {c.seed})": self.folder / "eval.csv"},
+            self.folder / "learning-curve.png",
+            f"{c.task}, {c.model} teacher on state, mode action", {"zero actions": floor})
+        self.board.image("eval/learning-curve", plot, self.frames)
         self.seconds["eval"] += time.perf_counter() - tick
         log.info("eval at %d frames: return %.1f (zero actions: %.1f)", self.frames,
                  self.eval_returns[-1], floor)

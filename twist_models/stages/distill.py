@@ -154,7 +154,11 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     rank, world = _rank_and_world()
     run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,
                torch_device, rank, world)
-    return run.loop(on_progress)
+    try:
+        return run.loop(on_progress)
+    finally:
+        if run.board is not None:
+            run.board.close()
 
 
 def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
@@ -325,7 +329,8 @@ class _Run:
                        HELDOUT_COLUMNS)
             for key, value in metrics.items():
                 self.board.scalar(f"heldout/{key}", value, self.updates)
-            plot_agreement(self.out / "heldout.csv", self.out / "latent-agreement.png")
+            plot = plot_agreement(self.out / "heldout.csv", self.out / "latent-agreement.png")
+            self.board.image("heldout/latent-agreement", plot, self.updates)
         return metrics
 
     def loop(self, on_progress: Callable[[Progress], None] | None) -> DistilSummary:

@@ -35,21 +35,41 @@ def append_csv(path: Path, row: dict[str, Any], columns: tuple[str, ...]) -> Non
 
 
 class Board:
-    """TensorBoard scalars when the ``tensorboard`` package is installed; otherwise nothing
-    (the CSV files are the record either way)."""
+    """TensorBoard scalars and images under ``folder/tensorboard`` when the ``tensorboard``
+    package is installed (``pip install twist[tensorboard]``); otherwise nothing: the CSV
+    files are the record either way. Events are flushed at most every ``flush_seconds`` (and
+    on :meth:`close`), not at every write: a crash loses at most that much of the board."""
 
-    def __init__(self, folder: Path) -> None:
+    def __init__(self, folder: Path, flush_seconds: float = 30.0) -> None:
         try:
             from torch.utils.tensorboard import SummaryWriter
         except ImportError:
             self._writer = None
         else:
-            self._writer = SummaryWriter(str(folder / "tensorboard"))
+            self._writer = SummaryWriter(str(folder / "tensorboard"), flush_secs=flush_seconds)
+
+    @property
+    def enabled(self) -> bool:
+        return self._writer is not None
 
     def scalar(self, tag: str, value: float, step: int) -> None:
         if self._writer is not None:
             self._writer.add_scalar(tag, value, step)
-            self._writer.flush()
+
+    def image(self, tag: str, png: Path, step: int) -> None:
+        """The picture in the file ``png`` (a plot the run has just written) under ``tag``."""
+        if self._writer is None:
+            return
+        import cv2
+
+        picture = cv2.imread(str(png), cv2.IMREAD_COLOR)
+        if picture is not None:
+            self._writer.add_image(tag, picture[..., ::-1].copy(), step, dataformats="HWC")
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
 
 
 def prepare_output(out: Path, error: type[TwistError]) -> None:
