@@ -57,20 +57,29 @@ def progress_bar(quiet: bool, description: str,
                  describe: Callable[[P], tuple[int, int, str]]
                  ) -> Iterator[Callable[[P], None] | None]:
     """A Rich bar on stderr with an ETA; the yielded callback takes a library progress report,
-    which ``describe`` turns into (done, total, text). Yields None when ``quiet``."""
+    which ``describe`` turns into (done, total, text). Yields None when ``quiet``. The bar
+    appears at the first report, so a refusal before any work is the only line printed."""
     if quiet:
         yield None
         return
-    with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-                  TextColumn("{task.fields[stats]}"), TimeRemainingColumn(),
-                  console=err) as bar:
-        task = bar.add_task(description, total=None, stats="")
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                   TextColumn("{task.fields[stats]}"), TimeRemainingColumn(), console=err)
+    task = bar.add_task(description, total=None, stats="")
+    started = False
 
-        def report(progress: P) -> None:
-            done, total, stats = describe(progress)
-            bar.update(task, completed=done, total=total, stats=stats)
+    def report(progress: P) -> None:
+        nonlocal started
+        if not started:
+            bar.start()
+            started = True
+        done, total, stats = describe(progress)
+        bar.update(task, completed=done, total=total, stats=stats)
 
+    try:
         yield report
+    finally:
+        if started:
+            bar.stop()
 
 
 def parse_list(text: str, kind: Callable[[str], T], option: str) -> list[T]:

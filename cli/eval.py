@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twist_cli.common import new_app, out, parse_list, print_json, run_app
+from twist_cli.common import new_app, out, parse_list, print_json, progress_bar, run_app
 from twist_data.errors import ConfigError
 from twist_data.tasks import DEFAULT_ACTION_REPEAT
 from twist_models.rssm import require_posterior_read
@@ -78,6 +78,10 @@ def main(
     posterior: Annotated[str, typer.Option(
         help="How students take z from their posterior: sample (the paper), mode or mean "
              "(class probabilities).")] = "sample",
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue the evaluation in --out: episodes it holds are kept, "
+                         "not run again.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
     require_posterior_read(posterior, "--posterior")
@@ -93,8 +97,11 @@ def main(
                         posterior=posterior,
                         backgrounds=None if backgrounds is None else str(backgrounds))
     seed_list = parse_list(seeds, int, "--seeds")
-    summary = run_evaluation(agents, config, seed_list, out_dir, video, device,
-                             against=paired_with)
+    with progress_bar(quiet, "evaluating", describe) as report:
+        summary = run_evaluation(agents, config, seed_list, out_dir, video, device,
+                                 against=paired_with, resume=resume,
+                                 on_progress=None if report is None
+                                 else lambda done, total: report((done, total)))
     table = Table(title=f"{task}, DR {dr}, {episodes} episodes x {len(seed_list)} seeds")
     columns = ["agent", "kind", "mean ± std (seeds)", "normalised IQM [95% CI]"]
     if paired_with is not None:
@@ -111,6 +118,12 @@ def main(
         table.add_row(*cells)
     out.print(table)
     print_json(summary, indent=None)
+
+
+def describe(progress: tuple[int, int]) -> tuple[int, int, str]:
+    """The bar's figures: episodes done of those asked for."""
+    done, total = progress
+    return done, total, f"{done}/{total} episodes"
 
 
 def entry() -> None:

@@ -3,6 +3,7 @@ environment pays, held-out DR is drawn once per episode, bad inputs are refused.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -395,3 +396,47 @@ def test_an_imported_policy_is_evaluated_like_a_scripted_one(gl, tmp_path, monke
                          timeout=300, env=env)
     assert bad.returncode == 2 and "has no 'pull'" in bad.stderr
     assert "Traceback" not in bad.stderr and not (tmp_path / "f").exists()
+
+
+def test_an_interrupted_evaluation_resumes_to_the_uninterrupted_result(tmp_path) -> None:
+    config = EvalConfig(task="cartpole-balance", dr="none", episodes=4, max_steps=15)
+    agents = {"random": "random", "zero": "zero"}
+    whole = run_evaluation(agents, config, [0, 1], tmp_path / "whole")
+    # Stopped after two episodes per seed, the last row cut short by the kill.
+    part = tmp_path / "part"
+    run_evaluation(agents, dataclasses.replace(config, episodes=2), [0, 1], part)
+    with (part / "episodes.csv").open("a") as f:
+        f.write("zero,reference,1,2,123")
+    with pytest.raises(EvalError, match=r"already holds an evaluation .*pass --resume"):
+        run_evaluation(agents, config, [0, 1], part)
+    with pytest.raises(EvalError, match="dr was 'none', now 'train'"):
+        run_evaluation(agents, dataclasses.replace(config, dr="train"), [0, 1], part,
+                       resume=True)
+    progress: list[tuple[int, int]] = []
+    ran: list[tuple[str, int, int]] = []
+    resumed = run_evaluation(agents, config, [0, 1], part, resume=True,
+                             on_episode=lambda name, r: ran.append((name, r.seed, r.episode)),
+                             on_progress=lambda done, total: progress.append((done, total)))
+    assert sorted(ran) == [(a, s, e) for a in ("random", "zero") for s in (0, 1) for e in (2, 3)]
+    assert progress[0] == (8, 16) and progress[-1] == (16, 16) and len(progress) == 9
+    key = ["agent", "seed", "episode"]
+    expected = pd.read_csv(tmp_path / "whole" / "episodes.csv").sort_values(key)
+    got = pd.read_csv(part / "episodes.csv").sort_values(key)
+    pd.testing.assert_frame_equal(got.reset_index(drop=True), expected.reset_index(drop=True))
+    assert resumed == whole
+
+
+def test_twist_eval_refuses_to_overwrite_an_evaluation_in_one_line(tmp_path) -> None:
+    args = [sys.executable, "-m", "twist_cli.eval", "--agent", "zero", "--task",
+            "cartpole-balance", "--dr", "none", "--episodes", "1", "--max-steps", "3",
+            "--out", str(tmp_path)]
+    assert subprocess.run(args, capture_output=True, text=True).returncode == 0
+    before = (tmp_path / "episodes.csv").read_text()
+    refused = subprocess.run(args, capture_output=True, text=True)
+    assert refused.returncode == 2 and refused.stderr.strip() == (
+        f"error: {str(tmp_path)!r} already holds an evaluation (episodes.csv); pass --resume "
+        "to continue it, or another --out")
+    assert (tmp_path / "episodes.csv").read_text() == before
+    more = subprocess.run([*args, "--resume", "--episodes", "2"], capture_output=True, text=True)
+    assert more.returncode == 0, more.stderr
+    assert len(pd.read_csv(tmp_path / "episodes.csv")) == 2

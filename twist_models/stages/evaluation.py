@@ -36,12 +36,13 @@ from twist_data.seeding import evaluation_episode_seed
 from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Step, TaskEnv, task_spec
 from twist_models.agent import Agent, AgentState
 from twist_models.checkpoint import read_checkpoint
-from twist_models.config import require_positive
+from twist_models.config import require_positive, to_json
 from twist_models.curves import plot_returns
 from twist_models.device import resolve_device
 from twist_models.networks import single_threaded
 from twist_models.policies import teacher_policy
 from twist_models.rssm import require_posterior_read
+from twist_models.stages.runlog import append_csv, refuse_resume, resume_conflicts
 from twist_models.statistics import PairedDifference, paired_difference, stratified_bootstrap
 from twist_models.teacher import Teacher, teacher_from_checkpoint
 
@@ -323,9 +324,12 @@ class EpisodeResult:
 
 def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
              on_episode: Callable[[EpisodeResult], None] | None = None,
-             record: Callable[[int, np.ndarray], None] | None = None) -> list[EpisodeResult]:
-    """Run ``config.episodes`` episodes of ``agent``; ``record(episode, frame)`` receives the
-    rendered view of every step (for videos) when given."""
+             record: Callable[[int, np.ndarray], None] | None = None,
+             skip: frozenset[int] = frozenset()) -> list[EpisodeResult]:
+    """Run ``config.episodes`` episodes of ``agent``, but those in ``skip``;
+    ``record(episode, frame)`` receives the rendered view of every step (for videos) when
+    given. Each episode depends only on (seed, its index), so a skipped episode changes none
+    of the others."""
     check_compatible(agent, config)
     env = TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
     render = agent.uses_images or record is not None
@@ -336,6 +340,8 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
           single_threaded()):
         sampler = renderer.sampler(seed)
         for i in range(config.episodes):
+            if i in skip:
+                continue
             episode_seed = evaluation_episode_seed(seed, i)
             step = env.reset(seed=episode_seed, dynamics=sampler.begin_episode(episode_seed))
             agent.reset()
@@ -372,14 +378,21 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                    seeds: Sequence[int], out: str | os.PathLike[str], videos: int = 0,
                    device: str = "cpu",
                    on_episode: Callable[[str, EpisodeResult], None] | None = None,
-                   against: str | None = None) -> dict[str, Any]:
+                   against: str | None = None, resume: bool = False,
+                   on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Evaluate every ``name: checkpoint`` (or loaded agent) on the same episodes for each seed and write
     ``episodes.csv``, ``summary.json``, ``returns.png`` and ``videos`` mp4s per agent to
     ``out``. Returns the summary: per agent the mean and std over seeds of the per-seed mean
     return, and, when an oracle (a teacher checkpoint) is among the agents, every agent's
     oracle-normalised IQM with a 95% bootstrap interval stratified by seed; with ``against``
     (one of the agents' names), every other agent's paired difference from it, episode by
-    episode."""
+    episode.
+
+    Each episode is appended to ``episodes.csv`` as it finishes. An ``out`` that holds an
+    evaluation is refused unless ``resume``: then the episodes it holds (agent, seed, episode)
+    are kept and not run again, provided its ``eval-config.json`` matches ``config`` in every
+    field but ``episodes`` (agents and seeds may be added). ``on_progress(done, total)``
+    follows the episodes asked for, those found done included."""
     if not agents:
         raise EvalError("no agents to evaluate")
     if not seeds:
@@ -391,32 +404,89 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise EvalError(f"output {str(out)!r} exists and is not a folder")
+    done = _episodes_done(out, config, resume)
     loaded = {name: load_agent(a, device, config.task, config.posterior)
               if isinstance(a, str | os.PathLike)
               else a for name, a in agents.items()}
     for name, agent in loaded.items():
         check_compatible(agent, config, f"agent {name!r}")
     out.mkdir(parents=True, exist_ok=True)
-    rows = []
+    stored = json.loads((out / EVAL_CONFIG).read_text()) if (out / EVAL_CONFIG).exists() else {}
+    (out / EVAL_CONFIG).write_text(json.dumps({"eval": to_json(config), "kinds": {
+        **stored.get("kinds", {}), **{n: agent_kind(a) for n, a in loaded.items()}}}, indent=2))
+    total = len(loaded) * len(seeds) * config.episodes
+    count = sum(1 for a, s_, e in done if a in loaded and s_ in seeds and e < config.episodes)
+    if on_progress is not None:
+        on_progress(count, total)
     for name, agent in loaded.items():
         kind = agent_kind(agent)
         for seed in seeds:
             frames: dict[int, list[np.ndarray]] = {}
             record = functools.partial(_keep_frame, frames, videos) if videos else None
-            report = None if on_episode is None else functools.partial(on_episode, name)
-            for r in evaluate(agent, config, seed, report, record):
-                rows.append({"agent": name, "kind": kind, "seed": seed, "episode": r.episode,
-                             "episode_seed": r.episode_seed, "return": r.episode_return,
-                             "steps": r.steps})
+
+            def finished(result: EpisodeResult, name: str = name, kind: str = kind) -> None:
+                append_csv(out / "episodes.csv", {
+                    "agent": name, "kind": kind, "seed": result.seed,
+                    "episode": result.episode, "episode_seed": result.episode_seed,
+                    "return": result.episode_return, "steps": result.steps}, EPISODE_COLUMNS)
+                if on_episode is not None:
+                    on_episode(name, result)
+                nonlocal count
+                count += 1
+                if on_progress is not None:
+                    on_progress(count, total)
+
+            skip = frozenset(e for a, s_, e in done if a == name and s_ == seed)
+            evaluate(agent, config, seed, finished, record, skip)
             for episode, clip in frames.items():
                 write_video(episode_strip(np.stack(clip)[:, None]),
                             out / f"{name}-seed{seed}-episode{episode}.mp4")
-    table = pd.DataFrame(rows, columns=EPISODE_COLUMNS)
-    table.to_csv(out / "episodes.csv", index=False)
+    table = pd.read_csv(out / "episodes.csv").drop_duplicates(["agent", "seed", "episode"])
+    table = _asked_for(table, list(agents), list(seeds), config.episodes)
     summary = summarise(table, config, against)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     plot_returns(table, out / "returns.png", f"{config.task}, DR {config.dr}")
     return summary
+
+
+def _asked_for(table: pd.DataFrame, agents: list[str], seeds: list[int], episodes: int
+               ) -> pd.DataFrame:
+    """The rows of ``agents`` x ``seeds`` x episodes < ``episodes``, ordered by agent and seed
+    as asked and then by episode: a resumed evaluation's rows, appended in another order, then
+    sum to the uninterrupted one's summary exactly."""
+    agent_rank = {a: i for i, a in enumerate(agents)}
+    seed_rank = {s: i for i, s in enumerate(seeds)}
+    table = table[table["agent"].isin(agent_rank) & table["seed"].isin(seed_rank)
+                  & (table["episode"] < episodes)]
+    order = np.lexsort((table["episode"].to_numpy(), table["seed"].map(seed_rank).to_numpy(),
+                        table["agent"].map(agent_rank).to_numpy()))
+    return table.iloc[order].reset_index(drop=True)
+
+
+#: What an evaluation folder records of its config, to refuse resuming it with another.
+EVAL_CONFIG = "eval-config.json"
+
+
+def _episodes_done(out: Path, config: EvalConfig, resume: bool) -> set[tuple[str, int, int]]:
+    """(agent, seed, episode) of every episode ``out`` holds; refuses a folder that holds an
+    evaluation unless ``resume``, and one whose stored config differs from ``config`` in any
+    field but ``episodes``."""
+    episodes = out / "episodes.csv"
+    if not episodes.exists():
+        return set()
+    if not resume:
+        raise EvalError(f"{str(out)!r} already holds an evaluation (episodes.csv); pass "
+                        "--resume to continue it, or another --out")
+    if (out / EVAL_CONFIG).exists():
+        before = json.loads((out / EVAL_CONFIG).read_text())["eval"]
+        refuse_resume(resume_conflicts(before, config, ("episodes",)), EvalError,
+                      "--episodes, --agent and --seeds")
+    text = episodes.read_bytes()
+    if text and not text.endswith(b"\n"):  # a row cut short by a kill: the episode reruns
+        episodes.write_bytes(text[:text.rfind(b"\n") + 1])
+    table = pd.read_csv(episodes).dropna(subset=["return"])
+    return {(str(a), int(s), int(e))
+            for a, s, e in zip(table["agent"], table["seed"], table["episode"], strict=True)}
 
 
 def agent_kind(agent: EvalAgent) -> str:

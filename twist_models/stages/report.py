@@ -219,7 +219,8 @@ class _Pipeline:
             eval_config = EvalConfig(task=self.task, dr=c.eval_dr, episodes=c.eval_episodes,
                                      max_steps=c.eval_max_steps,
                                      action_repeat=self._collect_config().action_repeat)
-            run_evaluation(agents, eval_config, [self.seed], eval_dir, device=self.device)
+            run_evaluation(agents, eval_config, [self.seed], eval_dir, device=self.device,
+                           resume=True)
 
     def _announce(self, stage: str) -> None:
         log.info("%s seed %d: %s", self.task, self.seed, stage)
