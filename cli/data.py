@@ -189,6 +189,22 @@ def export_minari_cmd(
 
 
 @app.command()
+def viz(
+    dataset: DatasetArg,
+    episode: Annotated[int, typer.Option(help="Global episode index (-1: the last).")] = 0,
+    save: Annotated[Path | None, typer.Option(
+        help="Write a .rrd file to open later (rerun FILE.rrd) instead of spawning the "
+             "viewer.")] = None,
+) -> None:
+    """Show one episode in the rerun viewer: every view as images on a step timeline, with
+    state, action, reward, flags and DR values beside them (needs the viz extra)."""
+    from twist_data.viewer import log_episode
+
+    path = log_episode(dataset, episode, save)
+    out.print(f"wrote {path}" if path is not None else "sent to the rerun viewer")
+
+
+@app.command()
 def synth(
     out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="Dataset folder to create.")],
     episodes: Annotated[int, typer.Option(help="Number of episodes.")] = 4,
