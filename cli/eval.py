@@ -82,6 +82,9 @@ def main(
         "--resume", help="Continue the evaluation in --out: episodes it holds are kept, "
                          "not run again.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+    batch: Annotated[int, typer.Option(
+        help="Episodes stepped together, one batched call of each trained agent per step "
+             "(the same episodes, up to float rounding).")] = 1,
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
     require_posterior_read(posterior, "--posterior")
@@ -99,7 +102,7 @@ def main(
     seed_list = parse_list(seeds, int, "--seeds")
     with progress_bar(quiet, "evaluating", describe) as report:
         summary = run_evaluation(agents, config, seed_list, out_dir, video, device,
-                                 against=paired_with, resume=resume,
+                                 against=paired_with, resume=resume, batch=batch,
                                  on_progress=None if report is None
                                  else lambda done, total: report((done, total)))
     table = Table(title=f"{task}, DR {dr}, {episodes} episodes x {len(seed_list)} seeds")

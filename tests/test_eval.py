@@ -26,6 +26,7 @@ from twist_models.stages.evaluation import (
     agents_setting,
     evaluate,
     load_agent,
+    reference_agent,
     run_evaluation,
     summarise,
 )
@@ -440,3 +441,39 @@ def test_twist_eval_refuses_to_overwrite_an_evaluation_in_one_line(tmp_path) -> 
     more = subprocess.run([*args, "--resume", "--episodes", "2"], capture_output=True, text=True)
     assert more.returncode == 0, more.stderr
     assert len(pd.read_csv(tmp_path / "episodes.csv")) == 2
+
+
+def test_episodes_stepped_together_are_the_episodes_run_alone(gl, agents) -> None:
+    config = EvalConfig(task="cartpole-balance", episodes=5, max_steps=12)
+    for spec in (agents["teacher"], agents["agent"], "random"):
+        agent = (reference_agent(spec, "cartpole-balance") if spec == "random"
+                 else load_agent(spec))
+        runs = {}
+        for batch in (1, 3):  # 3: groups of 3 and 2
+            frames: dict[int, list[np.ndarray]] = {}
+            calls = {"act": 0}
+            act = agent.act
+
+            def counted(step, image, act=act, calls=calls):
+                calls["act"] += 1
+                return act(step, image)
+
+            agent.act = counted
+            results = evaluate(agent, config, seed=1, batch=batch,
+                               record=lambda e, f, frames=frames: frames.setdefault(e, [])
+                               .append(f))
+            del agent.act
+            runs[batch] = (results, frames, calls["act"])
+        (alone, alone_frames, _), (together, together_frames, lone_calls) = runs[1], runs[3]
+        # The same episodes: seeds and lengths exactly; returns and frames up to the rounding
+        # of batched matrix products (a batch of 3 rounds differently from 3 of 1).
+        assert [(r.episode, r.episode_seed, r.steps) for r in together] == [
+            (r.episode, r.episode_seed, r.steps) for r in alone], spec
+        assert [r.episode_return for r in together] == pytest.approx(
+            [r.episode_return for r in alone], rel=1e-6), spec
+        assert len({round(r.episode_return, 3) for r in alone}) > 1  # the episodes differ
+        for episode, clip in alone_frames.items():
+            difference = np.abs(np.stack(clip).astype(int) - np.stack(together_frames[episode]))
+            assert difference.max() <= 1, (spec, episode)
+        # The trained agents acted through act_batch; the scripted one, one episode at a time.
+        assert (lone_calls == 0) == (spec != "random"), spec

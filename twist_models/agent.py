@@ -68,12 +68,14 @@ class Agent(nn.Module):
     # inference_mode: ~15% less per-call overhead than no_grad on this batch-1 path.
     @torch.inference_mode()
     def act(self, image: np.ndarray | torch.Tensor, state: AgentState | None = None,
-            explore: bool = False, posterior: str = "sample") -> tuple[np.ndarray, AgentState]:
+            explore: bool = False, posterior: str = "sample",
+            uniform: torch.Tensor | None = None) -> tuple[np.ndarray, AgentState]:
         """One step: ``image`` uint8 [H, W, 3] (or a batch [N, H, W, 3]) and the state the
         previous call returned (None at the start of an episode) -> (action [A] or [N, A] in
         [-1, 1], next state). ``explore`` samples the actor instead of taking its mode;
         ``posterior`` (one of :data:`~twist_models.rssm.POSTERIOR_READS`) is how the latent
-        takes z from the student's posterior (an unknown one raises ConfigError there)."""
+        takes z from the student's posterior (an unknown one raises ConfigError there);
+        ``uniform`` [N, S, 1] its sampling draws (fresh when None)."""
         image = torch.as_tensor(np.asarray(image), device=self.device)
         single = image.dim() == 3
         if single:
@@ -86,7 +88,8 @@ class Agent(nn.Module):
                                torch.zeros(n, self.config.student.action_dim, device=self.device))
         embed, history = step_frames(self.student.encoder(image), state.frames,
                                      self.config.student.frames)
-        latent = rssm.post_step(state.latent, state.action, embed, first, read=posterior)
+        latent = rssm.post_step(state.latent, state.action, embed, first, read=posterior,
+                                uniform=uniform)
         dist = self.actor(rssm.feature(latent))
         action = (dist.rsample() if explore else dist.mode).clamp(-1.0, 1.0)
         out = action.cpu().numpy()

@@ -39,20 +39,21 @@ class Teacher(Dreamer):
     # inference_mode: ~15% less per-call overhead than no_grad on this batch-1 path.
     @torch.inference_mode()
     def policy(self, state: torch.Tensor, latent: State | None, prev_action: torch.Tensor,
-               is_first: torch.Tensor | None, explore: bool = True, read: str = "sample"
-               ) -> tuple[torch.Tensor, State]:
+               is_first: torch.Tensor | None, explore: bool = True, read: str = "sample",
+               uniform: torch.Tensor | None = None) -> tuple[torch.Tensor, State]:
         """Act on privileged ``state`` [N, S] given the previous latent (None at the start),
         previous action [N, A] and is_first [N] (None: no episode starts at this step).
         Returns (action [N, A] in [-1, 1], latent).
 
         ``explore`` samples the actor (plus ``explore_noise``); otherwise the actor's mode.
-        ``read`` is how z is taken from the posterior (see ``RSSM.post_step``).
+        ``read`` is how z is taken from the posterior (see ``RSSM.post_step``); ``uniform``
+        [N, S, 1] its sampling draws (fresh when None).
         """
         rssm = self.world_model.rssm
         if latent is None:
             latent = rssm.initial(state.shape[0], state.device)
         latent = rssm.post_step(latent, prev_action, self.world_model.embed(state), is_first,
-                                read=read)
+                                read=read, uniform=uniform)
         dist = self.actor_critic.actor(rssm.feature(latent))
         if explore:
             action = dist.rsample()

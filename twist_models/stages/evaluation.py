@@ -131,6 +131,35 @@ class StateAgent:
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
         return self._policy(step)
 
+    @property
+    def batchable(self) -> bool:
+        """Whether :meth:`act_batch` reproduces :meth:`act`'s draws: not for a teacher that
+        reads its state through fresh noise (drawn inside the model, per call)."""
+        return not self.teacher.config.world_model.state_noise
+
+    @property
+    def draw_shape(self) -> tuple[int, ...] | None:
+        """The shape of the draws one :meth:`act` takes from torch's stream (None: none)."""
+        return (1, self.teacher.config.world_model.rssm.stoch, 1) \
+            if self.posterior == "sample" else None
+
+    def reset_batch(self, n: int) -> None:
+        self._latent = None
+        self._previous = torch.zeros(n, self.action_dim, device=self.device)
+
+    def act_batch(self, steps: Sequence[Step], images: np.ndarray | None,
+                  uniform: torch.Tensor | None) -> np.ndarray:
+        """One step of ``len(steps)`` episodes at once, ``uniform`` [N, S, 1] the posterior's
+        draws of each -> actions [N, A]."""
+        state = torch.as_tensor(np.stack([s.state for s in steps]), device=self.device).float()
+        first = (torch.tensor([s.is_first for s in steps], device=self.device)
+                 if steps[0].is_first else None)
+        action, self._latent = self.teacher.policy(
+            state, self._latent, self._previous, first, explore=False, read=self.posterior,
+            uniform=None if uniform is None else uniform.to(self.device))
+        self._previous = action
+        return action.cpu().numpy()
+
 
 class ImageAgent:
     """A distilled student bundle acting on one rendered view."""
@@ -151,6 +180,26 @@ class ImageAgent:
 
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
         action, self._state = self.agent.act(image, self._state, posterior=self.posterior)
+        return action
+
+    batchable = True
+
+    @property
+    def draw_shape(self) -> tuple[int, ...] | None:
+        """The shape of the draws one :meth:`act` takes from torch's stream (None: none)."""
+        return (1, self.agent.config.student.rssm.stoch, 1) \
+            if self.posterior == "sample" else None
+
+    def reset_batch(self, n: int) -> None:
+        self._state = None
+
+    def act_batch(self, steps: Sequence[Step], images: np.ndarray | None,
+                  uniform: torch.Tensor | None) -> np.ndarray:
+        """One step of ``len(steps)`` episodes at once on ``images`` [N, H, W, 3], ``uniform``
+        [N, S, 1] the posterior's draws of each -> actions [N, A]."""
+        action, self._state = self.agent.act(
+            images, self._state, posterior=self.posterior,
+            uniform=None if uniform is None else uniform.to(self.agent.device))
         return action
 
 
@@ -325,48 +374,115 @@ class EpisodeResult:
 def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
              on_episode: Callable[[EpisodeResult], None] | None = None,
              record: Callable[[int, np.ndarray], None] | None = None,
-             skip: frozenset[int] = frozenset()) -> list[EpisodeResult]:
+             skip: frozenset[int] = frozenset(), batch: int = 1) -> list[EpisodeResult]:
     """Run ``config.episodes`` episodes of ``agent``, but those in ``skip``;
     ``record(episode, frame)`` receives the rendered view of every step (for videos) when
     given. Each episode depends only on (seed, its index), so a skipped episode changes none
-    of the others."""
+    of the others.
+
+    ``batch`` > 1 steps that many episodes together, with one batched call of an agent that
+    has ``act_batch`` (one call per episode otherwise). Each episode keeps its own torch
+    random stream, seeded by its episode seed, from which its sampling draws are taken in the
+    order a lone episode takes them, so the episodes are the same for every ``batch``, up to
+    the rounding of batched matrix products (returns agree to ~1e-9 relative)."""
     check_compatible(agent, config)
-    env = TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
+    if batch < 1:
+        raise ConfigError(f"batch must be >= 1, got {batch}")
     render = agent.uses_images or record is not None
-    results = []
     supersample = config.supersample or getattr(agent, "supersample", None) or 1
+    todo = [i for i in range(config.episodes) if i not in skip]
+    # An agent without act_batch keeps one episode's state: its episodes run one at a time.
+    batched = batch > 1 and getattr(agent, "batchable", False)
+    width = max(1, min(batch, len(todo))) if batched else 1
+    envs = [TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
+            for _ in range(width)]
+    results = []
     with (DRRenderer(config.task, config.dr_config(), config.image_size, views=1,
                      supersample=supersample) as renderer,
-          single_threaded()):
-        sampler = renderer.sampler(seed)
-        for i in range(config.episodes):
-            if i in skip:
-                continue
-            episode_seed = evaluation_episode_seed(seed, i)
-            step = env.reset(seed=episode_seed, dynamics=sampler.begin_episode(episode_seed))
-            agent.reset()
-            total, steps = 0.0, 0
-            # The agents sample their latents: seeding torch per episode (without touching
-            # the caller's stream) makes a re-run score exactly the same.
-            with torch.random.fork_rng(devices=range(torch.cuda.device_count())):
-                torch.manual_seed(episode_seed)
-                while True:
-                    image = (renderer.render(step.physics, sampler.sample())[0] if render
-                             else None)
-                    if record is not None:
-                        record(i, image)
-                    if step.is_last:
-                        break
-                    with torch.no_grad():
-                        action = np.asarray(agent.act(step, image), np.float32)
-                    step = env.step(np.clip(action, -1.0, 1.0))
-                    total += step.reward
-                    steps += 1
-            result = EpisodeResult(seed, i, episode_seed, total, steps)
-            results.append(result)
-            if on_episode is not None:
-                on_episode(result)
+          single_threaded(), torch.random.fork_rng(devices=range(torch.cuda.device_count()))):
+        samplers = [renderer.sampler(seed) for _ in range(width)]
+        for lo in range(0, len(todo), width):
+            group = todo[lo:lo + width]
+            for result in _run_group(agent, envs, samplers, renderer, seed, group, render,
+                                     record, batched):
+                results.append(result)
+                if on_episode is not None:
+                    on_episode(result)
     return results
+
+
+def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
+               renderer: DRRenderer, seed: int, episodes: list[int], render: bool,
+               record: Callable[[int, np.ndarray], None] | None, batched: bool
+               ) -> list[EpisodeResult]:
+    """``episodes`` stepped together until each ends: one episode per slot, each slot with
+    its environment, its DR sampler and its torch random state."""
+    n = len(episodes)
+    seeds = [evaluation_episode_seed(seed, i) for i in episodes]
+    steps, streams = [], []
+    for slot, episode_seed in enumerate(seeds):
+        steps.append(envs[slot].reset(seed=episode_seed,
+                                      dynamics=samplers[slot].begin_episode(episode_seed)))
+        torch.manual_seed(episode_seed)  # the agents sample their latents: re-runs match
+        streams.append(torch.get_rng_state())
+    if batched:
+        agent.reset_batch(n)
+    else:
+        agent.reset()
+    totals, counts = [0.0] * n, [0] * n
+    done = [False] * n
+    images: list[np.ndarray | None] = [None] * n
+    while not all(done):
+        for slot in range(n):
+            if done[slot]:
+                continue
+            images[slot] = (renderer.render(steps[slot].physics, samplers[slot].sample())[0]
+                            if render else None)
+            if record is not None:
+                record(episodes[slot], images[slot])
+            done[slot] = steps[slot].is_last
+        if all(done):
+            break
+        live = [slot for slot in range(n) if not done[slot]]
+        actions = _act(agent, steps, images, streams, live, batched)
+        for slot in live:
+            steps[slot] = envs[slot].step(np.clip(actions[slot], -1.0, 1.0))
+            totals[slot] += steps[slot].reward
+            counts[slot] += 1
+    return [EpisodeResult(seed, i, s, totals[k], counts[k])
+            for k, (i, s) in enumerate(zip(episodes, seeds, strict=True))]
+
+
+def _act(agent: EvalAgent, steps: list[Step], images: list[np.ndarray | None],
+         streams: list[torch.Tensor], live: list[int], batched: bool
+         ) -> dict[int, np.ndarray]:
+    """Each live slot's action, with its own random stream in torch's place while it draws.
+    A batched agent steps every slot (a finished one on its last step and image: its action
+    is ignored) so the batch keeps its shape; its draws are taken slot by slot beforehand."""
+    if not batched:
+        actions = {}
+        for slot in live:
+            torch.set_rng_state(streams[slot])
+            with torch.no_grad():
+                actions[slot] = np.asarray(agent.act(steps[slot], images[slot]), np.float32)
+            streams[slot] = torch.get_rng_state()
+        return actions
+    uniform = None
+    shape = agent.draw_shape
+    if shape is not None:
+        draws = []
+        for slot in range(len(steps)):
+            torch.set_rng_state(streams[slot])
+            draws.append(torch.rand(*shape))
+            if slot in live:
+                streams[slot] = torch.get_rng_state()
+        uniform = torch.cat(draws)
+    stacked = None if images[live[0]] is None else np.stack(
+        [images[slot] if images[slot] is not None else images[live[0]]
+         for slot in range(len(steps))])
+    with torch.no_grad():
+        out = np.asarray(agent.act_batch(steps, stacked, uniform), np.float32)
+    return {slot: out[slot] for slot in live}
 
 
 # -- a whole evaluation: several agents, seeds, files ---------------------------------------------
@@ -379,7 +495,8 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                    device: str = "cpu",
                    on_episode: Callable[[str, EpisodeResult], None] | None = None,
                    against: str | None = None, resume: bool = False,
-                   on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                   on_progress: Callable[[int, int], None] | None = None, batch: int = 1
+                   ) -> dict[str, Any]:
     """Evaluate every ``name: checkpoint`` (or loaded agent) on the same episodes for each seed and write
     ``episodes.csv``, ``summary.json``, ``returns.png`` and ``videos`` mp4s per agent to
     ``out``. Returns the summary: per agent the mean and std over seeds of the per-seed mean
@@ -392,11 +509,14 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
     evaluation is refused unless ``resume``: then the episodes it holds (agent, seed, episode)
     are kept and not run again, provided its ``eval-config.json`` matches ``config`` in every
     field but ``episodes`` (agents and seeds may be added). ``on_progress(done, total)``
-    follows the episodes asked for, those found done included."""
+    follows the episodes asked for, those found done included. ``batch``: episodes stepped
+    together (:func:`evaluate`)."""
     if not agents:
         raise EvalError("no agents to evaluate")
     if not seeds:
         raise EvalError("no seeds to evaluate")
+    if batch < 1:
+        raise ConfigError(f"batch must be >= 1, got {batch}")
     if against is not None and against not in agents:
         raise EvalError(f"the agent to pair against, {against!r}, is not among the agents "
                         f"({', '.join(agents)})")
@@ -437,7 +557,7 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                     on_progress(count, total)
 
             skip = frozenset(e for a, s_, e in done if a == name and s_ == seed)
-            evaluate(agent, config, seed, finished, record, skip)
+            evaluate(agent, config, seed, finished, record, skip, batch)
             for episode, clip in frames.items():
                 write_video(episode_strip(np.stack(clip)[:, None]),
                             out / f"{name}-seed{seed}-episode{episode}.mp4")
