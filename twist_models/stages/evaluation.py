@@ -383,8 +383,11 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
     ``batch`` > 1 steps that many episodes together, with one batched call of an agent that
     has ``act_batch`` (one call per episode otherwise). Each episode keeps its own torch
     random stream, seeded by its episode seed, from which its sampling draws are taken in the
-    order a lone episode takes them, so the episodes are the same for every ``batch``, up to
-    the rounding of batched matrix products (returns agree to ~1e-9 relative)."""
+    order a lone episode takes them: every episode meets the same scene, initial state and
+    draws for every ``batch``, and follows the lone episode's trajectory until the rounding
+    of batched matrix products (a batch of N sums in another order than N batches of 1)
+    tips a sampled class, after which the two differ as two draws would (returns agree to
+    ~1e-9 over a few steps; over 250 some episodes part). ``batch=1`` is the reference."""
     check_compatible(agent, config)
     if batch < 1:
         raise ConfigError(f"batch must be >= 1, got {batch}")
@@ -416,23 +419,23 @@ def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
                record: Callable[[int, np.ndarray], None] | None, batched: bool
                ) -> list[EpisodeResult]:
     """``episodes`` stepped together until each ends: one episode per slot, each slot with
-    its environment, its DR sampler and its torch random state."""
+    its environment, its DR sampler and its random stream. Alone (not ``batched``: one
+    slot), the agent draws from torch's stream seeded by the episode seed; batched, each
+    slot's draws come from a generator seeded the same way (the same numbers)."""
     n = len(episodes)
     seeds = [evaluation_episode_seed(seed, i) for i in episodes]
-    steps, streams = [], []
-    for slot, episode_seed in enumerate(seeds):
-        steps.append(envs[slot].reset(seed=episode_seed,
-                                      dynamics=samplers[slot].begin_episode(episode_seed)))
-        torch.manual_seed(episode_seed)  # the agents sample their latents: re-runs match
-        streams.append(torch.get_rng_state())
+    steps = [envs[slot].reset(seed=s, dynamics=samplers[slot].begin_episode(s))
+             for slot, s in enumerate(seeds)]
     if batched:
         agent.reset_batch(n)
+        streams = [torch.Generator().manual_seed(s) for s in seeds]
     else:
         agent.reset()
+        torch.manual_seed(seeds[0])  # the agents sample their latents: re-runs match
     totals, counts = [0.0] * n, [0] * n
     done = [False] * n
     images: list[np.ndarray | None] = [None] * n
-    while not all(done):
+    while True:
         for slot in range(n):
             if done[slot]:
                 continue
@@ -441,10 +444,14 @@ def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
             if record is not None:
                 record(episodes[slot], images[slot])
             done[slot] = steps[slot].is_last
-        if all(done):
-            break
         live = [slot for slot in range(n) if not done[slot]]
-        actions = _act(agent, steps, images, streams, live, batched)
+        if not live:
+            break
+        if batched:
+            actions = _act_batch(agent, steps, images, streams)
+        else:
+            with torch.no_grad():
+                actions = [np.asarray(agent.act(steps[0], images[0]), np.float32)]
         for slot in live:
             steps[slot] = envs[slot].step(np.clip(actions[slot], -1.0, 1.0))
             totals[slot] += steps[slot].reward
@@ -453,36 +460,17 @@ def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
             for k, (i, s) in enumerate(zip(episodes, seeds, strict=True))]
 
 
-def _act(agent: EvalAgent, steps: list[Step], images: list[np.ndarray | None],
-         streams: list[torch.Tensor], live: list[int], batched: bool
-         ) -> dict[int, np.ndarray]:
-    """Each live slot's action, with its own random stream in torch's place while it draws.
-    A batched agent steps every slot (a finished one on its last step and image: its action
-    is ignored) so the batch keeps its shape; its draws are taken slot by slot beforehand."""
-    if not batched:
-        actions = {}
-        for slot in live:
-            torch.set_rng_state(streams[slot])
-            with torch.no_grad():
-                actions[slot] = np.asarray(agent.act(steps[slot], images[slot]), np.float32)
-            streams[slot] = torch.get_rng_state()
-        return actions
-    uniform = None
+def _act_batch(agent: EvalAgent, steps: list[Step], images: list[np.ndarray | None],
+               streams: list[torch.Generator]) -> np.ndarray:
+    """One batched call for every slot (a finished one on its last step and image, its action
+    ignored, so the batch keeps its shape), each slot's draws taken from its own stream in
+    the shape one lone step draws -> actions [N, A]."""
     shape = agent.draw_shape
-    if shape is not None:
-        draws = []
-        for slot in range(len(steps)):
-            torch.set_rng_state(streams[slot])
-            draws.append(torch.rand(*shape))
-            if slot in live:
-                streams[slot] = torch.get_rng_state()
-        uniform = torch.cat(draws)
-    stacked = None if images[live[0]] is None else np.stack(
-        [images[slot] if images[slot] is not None else images[live[0]]
-         for slot in range(len(steps))])
+    uniform = None if shape is None else torch.cat(
+        [torch.rand(*shape, generator=stream) for stream in streams])
+    stacked = None if images[0] is None else np.stack(images)
     with torch.no_grad():
-        out = np.asarray(agent.act_batch(steps, stacked, uniform), np.float32)
-    return {slot: out[slot] for slot in live}
+        return np.asarray(agent.act_batch(steps, stacked, uniform), np.float32)
 
 
 # -- a whole evaluation: several agents, seeds, files ---------------------------------------------
@@ -563,7 +551,7 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                             out / f"{name}-seed{seed}-episode{episode}.mp4")
     table = pd.read_csv(out / "episodes.csv").drop_duplicates(["agent", "seed", "episode"])
     table = _asked_for(table, list(agents), list(seeds), config.episodes)
-    summary = summarise(table, config, against)
+    summary = {**summarise(table, config, against), "batch": batch}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     plot_returns(table, out / "returns.png", f"{config.task}, DR {config.dr}")
     return summary
