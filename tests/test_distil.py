@@ -22,6 +22,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from tests.conftest import board_events
+from twist_cli.common import parse_settings
 from twist_data.errors import ConfigError
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
@@ -35,7 +36,7 @@ from twist_models.config import (
 from twist_models.distillation import DistilConfig, Distillation, distil_preset, latent_agreement
 from twist_models.losses import distillation_loss, imagined_distillation_loss
 from twist_models.stages.distill import DistilError, distil, load_student, stored_config
-from twist_models.stages.runlog import append_csv, resume_conflicts
+from twist_models.stages.runlog import append_csv, recorded_config, resume_conflicts
 from twist_models.student import Student, copy_teacher_dynamics, stack_frames, step_frames
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 
@@ -331,10 +332,8 @@ def test_a_run_starts_from_a_recorded_config_with_overrides(distil_inputs, tmp_p
     refusals = {
         "is a collect run's config; this command starts from a distil run's":
             ["--config", str(other_kind)],
-        "does not exist": ["--config", str(tmp_path / "missing.json")],
         "--config gives the preset and the recipe": ["--config", str(first), "--recipe",
                                                      "paper"],
-        "KEY one of": ["--config", str(first), "--set", "optim.nope=1"],
     }
     for i, (expected_text, args) in enumerate(refusals.items()):
         out = tmp_path / f"refused-{i}"
@@ -343,6 +342,10 @@ def test_a_run_starts_from_a_recorded_config_with_overrides(distil_inputs, tmp_p
         assert refused.returncode == 2 and len(lines) == 1, refused.stderr
         assert expected_text in lines[0], lines[0]
         assert not out.exists()
+    with pytest.raises(ConfigError, match=r"missing\.json' does not exist"):
+        recorded_config(tmp_path / "missing.json", "distil", DistilConfig)
+    with pytest.raises(ConfigError, match=r"KEY one of .*optim\.grad_clip.*got 'optim\.nope=1'"):
+        parse_settings(["optim.nope=1"], DistilConfig)
 
 
 def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
