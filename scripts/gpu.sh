@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# One GPU lease: cartpole-balance at the paper's model sizes. The teacher learns on states
+# while writing D, the student is distilled from D for STUDENT_STEPS updates (10K), and
+# teacher, student and the zero-action floor are evaluated on held-out scenes. Every output
+# and the seconds each stage took (timings.json) go to OUT. Every stage resumes where it
+# stopped: run the same command again on the next lease.
+#
+#   bash scripts/gpu.sh [OUT]        # OUT defaults to runs/gpu
+#
+# Settings (environment): DEVICE (cuda), PRESET (paper), FRAMES (D's frames, 120000),
+# LEARN_FRAMES (frames the teacher learns for, 100000), STUDENT_STEPS (10000), RECIPE (dense),
+# EVAL_EPISODES (10), TASK (cartpole-balance). PRESET=tiny DEVICE=cpu runs it at test sizes
+# in seconds (the preset's own frames; tests/test_gpu_script.py does). The frame budget is a
+# plan for a 25-minute lease that no GPU has measured yet: the first run's timings.json is
+# the measurement.
+set -euo pipefail
+. "$(dirname "$0")/bootstrap.sh"
+OUT="${1:-runs/gpu}"
+TASK="${TASK:-cartpole-balance}"
+PRESET="${PRESET:-paper}"
+DEVICE="${DEVICE:-cuda}"
+mkdir -p "$OUT"
+BUDGET=()
+if [[ "$PRESET" != tiny ]]; then
+  BUDGET=(--frames "${FRAMES:-120000}" --set "learn_frames=${LEARN_FRAMES:-100000}"
+          --set freeze_best=true)
+fi
+STEPS=()
+if [[ -n "${STUDENT_STEPS:-}" || "$PRESET" != tiny ]]; then STEPS=(--steps "${STUDENT_STEPS:-10000}"); fi
+EVAL=(--episodes "${EVAL_EPISODES:-10}")
+if [[ "$PRESET" == tiny ]]; then EVAL=(--episodes 2 --max-steps 20); fi
+
+declare -A SPENT
+stage() {  # stage NAME COMMAND...: run it and record its seconds
+  local name=$1 start=$SECONDS
+  shift
+  "$@"
+  SPENT[$name]=$((SECONDS - start))
+}
+
+RESUME=()
+if [[ -d "$OUT/dataset/collect" ]]; then RESUME=(--resume); fi
+stage collect twist-collect --task "$TASK" --preset "$PRESET" --device "$DEVICE" \
+      --out "$OUT/dataset" --quiet "${BUDGET[@]}" "${RESUME[@]}"
+RESUME=()
+if [[ -f "$OUT/student/config.json" ]]; then RESUME=(--resume); fi
+stage distil twist-distil --dataset "$OUT/dataset" --out "$OUT/student" --preset "$PRESET" \
+      --recipe "${RECIPE:-dense}" --device "$DEVICE" --quiet "${STEPS[@]}" "${RESUME[@]}"
+RESUME=()
+if [[ -f "$OUT/eval/episodes.csv" ]]; then RESUME=(--resume); fi
+stage eval twist-eval --agent "oracle=$OUT/dataset/collect/collect-000/teacher.pt" \
+      --agent "student=$OUT/student/agent.pt" --agent zero --dr heldout --device "$DEVICE" \
+      --batch 10 --quiet --out "$OUT/eval" "${EVAL[@]}" "${RESUME[@]}"
+{
+  printf '{"preset": "%s", "device": "%s"' "$PRESET" "$DEVICE"
+  for name in collect distil eval; do printf ', "%s_s": %s' "$name" "${SPENT[$name]}"; done
+  printf '}\n'
+} > "$OUT/timings.json"
+cat "$OUT/timings.json"
+echo "lease run done: results in $OUT"
