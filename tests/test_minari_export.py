@@ -129,8 +129,9 @@ def test_an_existing_id_is_refused_unless_overwritten(
     assert refused.stderr.strip() == (f"error: Minari dataset '{DATASET_ID}' already exists in "
                                       f"{root}; pass overwrite (--overwrite) to replace it")
     assert main_data.read_bytes() == before
-    with pytest.raises(MinariExportError, match="is not a Minari ID"):
-        export_minari(dataset, "../outside", root=root)
+    for bad in ("../outside-v0", "no-version", "a name-v0", "/abs-v0"):
+        with pytest.raises(MinariExportError, match="is not a Minari ID"):
+            export_minari(dataset, bad, root=root)
     # Overwriting writes the new dataset aside first: no staging folder or old copy remains.
     small = write_synthetic_dataset(root.parent / "small", SynthConfig(
         episodes=2, steps=6, views=2, image_size=16, seed=9))

@@ -27,6 +27,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import shutil
 import uuid
 from collections.abc import Callable, Iterator
@@ -39,6 +40,10 @@ from twist_data.errors import MissingExtraError, TwistError
 from twist_data.reader import MatchingDataset, open_dataset
 
 log = logging.getLogger(__name__)
+
+#: Minari's dataset IDs, ``[namespace/]name-v<version>`` (letters, digits, ``_`` and ``-``;
+#: Minari itself accepts an ID without its version, then fails to write it).
+DATASET_ID = re.compile(r"(?:[-\w]+/)*[-\w]+?-v\d+")
 
 #: Episodes handed to Minari per write: bounds memory by this many episodes' images.
 EPISODES_PER_WRITE = 16
@@ -124,9 +129,9 @@ def export_minari(dataset_path: str | os.PathLike[str], dataset_id: str,
     minari = _minari()
     data = open_dataset(dataset_path)
     root = minari_root(root)
-    if not dataset_id or dataset_id.startswith("/") or ".." in dataset_id.split("/"):
-        raise MinariExportError(f"dataset ID {dataset_id!r} is not a Minari ID "
-                                "([namespace/]name-v<version>)")
+    if DATASET_ID.fullmatch(dataset_id) is None:
+        raise MinariExportError(f"dataset ID {dataset_id!r} is not a Minari ID: "
+                                "[namespace/]name-v<version>, e.g. twist/cartpole-balance-v0")
     target = root / dataset_id
     if target.exists() and not overwrite:
         raise MinariExportError(f"Minari dataset {dataset_id!r} already exists in {root}; "
