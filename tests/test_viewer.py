@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -76,6 +78,14 @@ def test_bad_requests_are_refused_in_one_line(tmp_path: Path,
         lines = result.stderr.strip().splitlines()
         assert result.returncode == 2 and len(lines) == 1 and message in lines[0], result.stderr
         assert not list(tmp_path.glob("a.*"))
+    # Without --save on a Linux machine with no display: refused before rerun is started.
+    headless = {k: v for k, v in os.environ.items()
+                          if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    result = subprocess.run([sys.executable, "-m", "twist_cli.data", "viz", str(dataset)],
+                            capture_output=True, text=True, env=headless)
+    if sys.platform.startswith("linux"):
+        assert result.returncode == 2 and result.stderr.strip().startswith(
+            "error: no display to open the rerun viewer on"), result.stderr
     monkeypatch.setitem(sys.modules, "rerun", None)
     with pytest.raises(MissingExtraError, match=r"pip install 'twist\[viz\]'"):
         log_episode(dataset, 0, tmp_path / "b.rrd")

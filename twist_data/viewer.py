@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +68,11 @@ def log_episode(dataset_path: str | os.PathLike[str], episode: int,
         raise ViewerError(f"{out} must end in .rrd (rerun's recording file)")
     if out is not None and out.is_dir():
         raise ViewerError(f"{out} is a folder; give the path of the .rrd file to write")
+    if out is None and sys.platform.startswith("linux") and not (
+            os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise ViewerError("no display to open the rerun viewer on (DISPLAY and "
+                          "WAYLAND_DISPLAY are unset); pass --save FILE.rrd and open the file "
+                          "with `rerun FILE.rrd` where there is one")
     recording = rr.RecordingStream("twist", recording_id=f"{data.path.name}-episode-{index}")
     partial = None
     if out is not None:
@@ -81,6 +87,8 @@ def log_episode(dataset_path: str | os.PathLike[str], episode: int,
         recording.disconnect()
         if partial is not None and out is not None:
             os.replace(partial, out)
+    except RuntimeError as exc:  # rerun's sinks report a failed viewer or file this way
+        raise ViewerError(f"rerun could not take the recording: {exc}") from None
     finally:
         if partial is not None:
             partial.unlink(missing_ok=True)
