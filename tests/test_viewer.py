@@ -79,8 +79,7 @@ def test_bad_requests_are_refused_in_one_line(tmp_path: Path,
         assert result.returncode == 2 and len(lines) == 1 and message in lines[0], result.stderr
         assert not list(tmp_path.glob("a.*"))
     # Without --save on a Linux machine with no display: refused before rerun is started.
-    headless = {k: v for k, v in os.environ.items()
-                          if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     result = subprocess.run([sys.executable, "-m", "twist_cli.data", "viz", str(dataset)],
                             capture_output=True, text=True, env=headless)
     if sys.platform.startswith("linux"):
