@@ -100,6 +100,8 @@ def test_torchrl_samples_slices_of_the_export(exported: tuple[Path, Path]) -> No
     # Three slices of four consecutive steps, each within one episode.
     episodes = batch["episode"].reshape(3, 4)
     assert (episodes == episodes[:, :1]).all()
+    with pytest.raises(MinariExportError, match="no Minari dataset 'twist/other-v0' in"):
+        minari_replay_buffer("twist/other-v0", root=root)
 
 
 @pytest.mark.xfail(strict=True, reason="torchrl 0.14.1's MinariExperienceReplay returns "

@@ -40,8 +40,11 @@ def minari_replay_buffer(dataset_id: str, root: str | os.PathLike[str] | None = 
     transitions as ``batch_size // slice_len`` slices of ``slice_len`` consecutive steps of one
     episode each. Held in memory."""
     minari, torch, tensordict_type, (storage_type, sampler_type, buffer_type) = _imports()
-    from twist_data.minari_export import minari_datasets_path, minari_root
+    from twist_data.minari_export import MinariExportError, minari_datasets_path, minari_root
 
+    if not (minari_root(root) / dataset_id / "data").is_dir():
+        raise MinariExportError(f"no Minari dataset {dataset_id!r} in {minari_root(root)} "
+                                "(twist-data export-minari writes one)")
     with minari_datasets_path(minari_root(root)):
         dataset = minari.load_dataset(dataset_id)
         episodes = [_episode_tensordict(e, torch, tensordict_type)
