@@ -11,7 +11,6 @@ import typer
 from twist_cli.common import new_app, parse_settings, print_json, progress_bar, run_app
 from twist_data.errors import ConfigError
 from twist_data.tasks import DEFAULT_TASK
-from twist_models.config import replace_fields
 from twist_models.device import resolve_device
 from twist_models.stages.collect import (
     COLLECT_PRESETS,
@@ -74,12 +73,12 @@ def main(
     if resume and (run_dir(out_dir, name) / "config.json").exists():
         # A resumed run keeps its stored config; flags given again must agree with it
         # (collect() refuses any difference but --frames).
-        config = replace_fields(stored_config(out_dir, name), given)
+        config = stored_config(out_dir, name).with_settings(given)
     elif config_file is not None:
         if preset is not None:
             raise ConfigError("--config gives the preset; change its fields with --set "
                               "instead of passing --preset")
-        config = replace_fields(recorded_config(config_file, "collect", CollectConfig), given)
+        config = recorded_config(config_file, "collect", CollectConfig).with_settings(given)
     else:
         config = collect_preset(preset or "quick", **given)
     resolve_device(device)  # before the bar: a refusal is then the only line printed

@@ -28,6 +28,7 @@ from twist_data.tasks import Dynamics, TaskEnv
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
 from twist_models.checkpoint import read_checkpoint
+from twist_models.config import teacher_preset
 from twist_models.policies import Pushes
 from twist_models.stages.collect import (
     CollectConfig,
@@ -488,3 +489,24 @@ def test_a_device_this_torch_cannot_use_is_refused_before_anything_is_created(
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert done.stderr.strip().startswith("error: device 'cuda' is not available")
     assert not (tmp_path / "d").exists()
+
+
+def test_the_teachers_sizes_are_set_through_nested_keys(tmp_path: Path) -> None:
+    config = collect_preset("tiny", **{"teacher.world_model.rssm.deter": 48,
+                                       "teacher.actor_critic.actor.units": 24})
+    preset = teacher_preset("tiny", 5, 1)  # cartpole: 5 state components, 1 action
+    expected = dataclasses.replace(preset, world_model=dataclasses.replace(
+        preset.world_model, rssm=dataclasses.replace(preset.world_model.rssm, deter=48)),
+        actor_critic=dataclasses.replace(preset.actor_critic, actor=dataclasses.replace(
+            preset.actor_critic.actor, units=24)))
+    assert config.teacher == expected  # the preset's config with the two fields changed
+    collect(tmp_path, dataclasses.replace(config, frames=200))
+    teacher, _ = load_teacher(find_teacher(tmp_path), 5)
+    assert teacher.config.world_model.rssm.deter == 48
+    assert teacher.config.actor_critic.actor.units == 24
+    # A teacher config of another task's sizes is refused before anything runs.
+    other = collect_preset("tiny", task="cup-catch", **{"teacher.world_model.rssm.deter": 48})
+    with pytest.raises(ConfigError, match="reads states of 8 and acts in 2 dimensions, but "
+                                          "cartpole-balance has 5 and 1"):
+        collect(tmp_path / "other", dataclasses.replace(other, task="cartpole-balance"))
+    assert not (tmp_path / "other" / "collect-000.zarr").exists()

@@ -8,6 +8,7 @@ checkpoint, and a checkpoint is only loaded into a model built from an equal con
 from __future__ import annotations
 
 import dataclasses
+import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -382,8 +383,8 @@ def from_json(cls: type[T], data: Mapping[str, Any]) -> T:
     kwargs = {}
     hints = typing.get_type_hints(cls)
     for name, value in data.items():
-        kind = hints[name]
-        if dataclasses.is_dataclass(kind) and isinstance(value, Mapping):
+        kind = nested_config_type(hints[name])
+        if kind is not None and isinstance(value, Mapping):
             value = from_json(kind, value)
         elif isinstance(value, list):
             value = tuple(value)
@@ -391,19 +392,29 @@ def from_json(cls: type[T], data: Mapping[str, Any]) -> T:
     return cls(**kwargs)
 
 
+def nested_config_type(hint: Any) -> type | None:
+    """The config dataclass a field annotation holds (``X`` or ``X | None``), else None."""
+    if dataclasses.is_dataclass(hint):
+        return hint
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        kinds = [k for k in typing.get_args(hint) if dataclasses.is_dataclass(k)]
+        return kinds[0] if len(kinds) == 1 else None
+    return None
+
 
 def field_types(config_type: type) -> dict[str, Any]:
     """Every settable field of the config dataclass ``config_type`` and its annotation, a
     nested config's fields under dotted names (``optim.grad_clip``) beside the nested config
     itself."""
-    types: dict[str, Any] = {}
+    found: dict[str, Any] = {}
     for name, hint in typing.get_type_hints(config_type).items():
         if name not in {f.name for f in dataclasses.fields(config_type)}:
             continue
-        types[name] = hint
-        if dataclasses.is_dataclass(hint):
-            types.update({f"{name}.{k}": v for k, v in field_types(hint).items()})
-    return types
+        found[name] = hint
+        nested = nested_config_type(hint)
+        if nested is not None:
+            found.update({f"{name}.{k}": v for k, v in field_types(nested).items()})
+    return found
 
 
 def replace_fields(config: T, settings: Mapping[str, Any]) -> T:

@@ -36,7 +36,7 @@ import logging
 import os
 import time
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -198,6 +198,10 @@ class CollectConfig:
     """Override of the actor-critic's per-agent-step discount; None keeps the preset's (0.99,
     DreamerV2's at action repeat 2: keep gamma ** (1 / action_repeat) fixed to keep the
     horizon in seconds)."""
+    teacher: TeacherConfig | None = None
+    """The teacher's whole config, its sizes included; None: the ``model`` preset's for the
+    task. ``--set teacher.<field>=...`` (e.g. ``teacher.world_model.rssm.deter=256``) starts
+    it from that preset (:meth:`with_settings`). The override fields above apply on top."""
 
     def __post_init__(self) -> None:
         task_spec(self.task)  # raises UnknownTaskError naming the valid tasks
@@ -225,8 +229,27 @@ class CollectConfig:
             raise ConfigError(f"max_steps {self.max_steps} is shorter than one replay window "
                               f"(batch_length {self.batch_length})")
 
+    def with_settings(self, settings: Mapping[str, Any]) -> CollectConfig:
+        """This config with ``settings`` replaced (dotted keys reach nested configs). A
+        ``teacher.<field>`` key on a config without a teacher config first gets the ``model``
+        preset's for the task (as it stands after the other settings) to change."""
+        own = {k: v for k, v in settings.items() if not k.startswith("teacher.")}
+        config = replace_fields(self, own)
+        teacher = {k: v for k, v in settings.items() if k.startswith("teacher.")}
+        if teacher and config.teacher is None:
+            env = TaskEnv(config.task, config.action_repeat)
+            config = dataclasses.replace(config, teacher=teacher_preset(
+                config.model, env.state_dim, env.action_dim))
+        return replace_fields(config, teacher)
+
     def teacher_config(self, state_dim: int, action_dim: int) -> TeacherConfig:
-        config = teacher_preset(self.model, state_dim, action_dim)
+        if self.teacher is not None:
+            wm = self.teacher.world_model
+            if (wm.state_dim, wm.action_dim) != (state_dim, action_dim):
+                raise ConfigError(f"the teacher config reads states of {wm.state_dim} and acts "
+                                  f"in {wm.action_dim} dimensions, but {self.task} has "
+                                  f"{state_dim} and {action_dim}")
+        config = self.teacher or teacher_preset(self.model, state_dim, action_dim)
         behaviour = _given(imag_starts=self.imag_starts, horizon=self.horizon,
                            entropy=self.actor_entropy, actor_grad=self.actor_grad,
                            return_norm=self.return_norm, critic_head=self.critic_head,
@@ -298,7 +321,7 @@ def collect_preset(name: str, **overrides: Any) -> CollectConfig:
     if name not in COLLECT_PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: "
                           f"{', '.join(COLLECT_PRESETS)}")
-    return replace_fields(COLLECT_PRESETS[name], _given(**overrides))
+    return COLLECT_PRESETS[name].with_settings(_given(**overrides))
 
 
 def _given(**values: Any) -> dict[str, Any]:
