@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib
+from typing import Any
+
 
 class TwistError(Exception):
     """Base class of every error the toolkit raises on bad input or bad data."""
@@ -65,3 +68,13 @@ class CheckpointMismatchError(CheckpointError):
 
 class MissingExtraError(TwistError, ImportError):
     """An optional integration was asked for without its extra installed."""
+
+
+def import_extra(module: str, extra: str, reason: str) -> Any:
+    """``module`` imported, or a :class:`MissingExtraError` saying that ``reason`` (e.g.
+    "exporting to Minari needs") the ``extra`` and the command that installs it."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise MissingExtraError(f"{reason} the {extra} extra: "
+                                f"pip install 'twist[{extra}]'") from None

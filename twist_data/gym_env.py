@@ -21,18 +21,14 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from twist_data.errors import ConfigError, MissingExtraError
+from twist_data.errors import ConfigError, import_extra
 from twist_data.randomisation import DR_PRESETS, dr_preset
 from twist_data.render import DRRenderer
 from twist_data.seeding import evaluation_episode_seed
 from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, TASKS, TaskEnv
 
-try:
-    import gymnasium
-    from gymnasium import spaces
-except ImportError:  # pragma: no cover - exercised only without the extra
-    raise MissingExtraError("the Gymnasium environments need the gym extra: "
-                            "pip install 'twist[gym]'") from None
+gymnasium = import_extra("gymnasium", "gym", "the Gymnasium environments need")
+spaces = gymnasium.spaces
 
 #: What an observation may hold.
 OBSERVATION_KEYS = ("image", "state")

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from twist_data.errors import MissingExtraError, TwistError
+from twist_data.errors import TwistError, import_extra
 from twist_data.reader import MatchingDataset, open_dataset
 
 log = logging.getLogger(__name__)
@@ -54,12 +54,7 @@ class MinariExportError(TwistError):
 
 
 def _minari() -> Any:
-    try:
-        import minari
-    except ImportError:
-        raise MissingExtraError("exporting to Minari needs the minari extra: "
-                                "pip install 'twist[minari]'") from None
-    return minari
+    return import_extra("minari", "minari", "exporting to Minari needs")
 
 
 def minari_root(root: str | os.PathLike[str] | None = None) -> Path:

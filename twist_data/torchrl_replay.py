@@ -18,19 +18,18 @@ from typing import Any
 
 import numpy as np
 
-from twist_data.errors import MissingExtraError
+from twist_data.errors import import_extra
 
 
 def _imports() -> tuple[Any, Any, Any, Any]:
-    try:
-        import minari
-        import torch
-        from tensordict import TensorDict
-        from torchrl.data import LazyTensorStorage, SliceSampler, TensorDictReplayBuffer
-    except ImportError:
-        raise MissingExtraError("a torchrl replay buffer needs the torchrl extra: "
-                                "pip install 'twist[torchrl]'") from None
-    return minari, torch, TensorDict, (LazyTensorStorage, SliceSampler, TensorDictReplayBuffer)
+    reason = "a torchrl replay buffer needs"
+    minari = import_extra("minari", "torchrl", reason)
+    tensordict = import_extra("tensordict", "torchrl", reason)
+    data = import_extra("torchrl.data", "torchrl", reason)
+    import torch
+
+    return minari, torch, tensordict.TensorDict, (data.LazyTensorStorage, data.SliceSampler,
+                                                  data.TensorDictReplayBuffer)
 
 
 def minari_replay_buffer(dataset_id: str, root: str | os.PathLike[str] | None = None,

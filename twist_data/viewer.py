@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from twist_data.errors import MissingExtraError, TwistError
+from twist_data.errors import TwistError, import_extra
 from twist_data.reader import MatchingDataset, open_dataset
 
 
@@ -34,12 +34,7 @@ class ViewerError(TwistError):
 
 
 def _rerun() -> Any:
-    try:
-        import rerun
-    except ImportError:
-        raise MissingExtraError("the timeline viewer needs the viz extra: "
-                                "pip install 'twist[viz]'") from None
-    return rerun
+    return import_extra("rerun", "viz", "the timeline viewer needs")
 
 
 def state_series(data: MatchingDataset) -> list[tuple[str, slice]]:

@@ -40,7 +40,6 @@ from twist_models.config import require_positive, to_json
 from twist_models.curves import plot_returns
 from twist_models.device import resolve_device
 from twist_models.networks import single_threaded
-from twist_models.policies import teacher_policy
 from twist_models.rssm import require_posterior_read
 from twist_models.stages.runlog import append_csv, refuse_resume, resume_conflicts
 from twist_models.statistics import PairedDifference, paired_difference, stratified_bootstrap
@@ -106,6 +105,12 @@ class EvalAgent(Protocol):
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray: ...
 
 
+def posterior_draws(stoch: int, posterior: str) -> tuple[int, ...] | None:
+    """The shape of the uniform draws one acting step takes from torch's stream, for ``stoch``
+    latent variables read from the posterior as ``posterior`` says (None: no draws)."""
+    return (1, stoch, 1) if posterior == "sample" else None
+
+
 class StateAgent:
     """The teacher acting on privileged state with its actor's mode: the oracle."""
 
@@ -125,11 +130,10 @@ class StateAgent:
         self.reset()
 
     def reset(self) -> None:
-        self._policy = teacher_policy(self.teacher, self.action_dim, self.device, explore=False,
-                                      read=self.posterior)
+        self.reset_batch(1)
 
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
-        return self._policy(step)
+        return self.act_batch([step], None, None)[0]
 
     @property
     def batchable(self) -> bool:
@@ -140,8 +144,7 @@ class StateAgent:
     @property
     def draw_shape(self) -> tuple[int, ...] | None:
         """The shape of the draws one :meth:`act` takes from torch's stream (None: none)."""
-        return (1, self.teacher.config.world_model.rssm.stoch, 1) \
-            if self.posterior == "sample" else None
+        return posterior_draws(self.teacher.config.world_model.rssm.stoch, self.posterior)
 
     def reset_batch(self, n: int) -> None:
         self._latent = None
@@ -187,8 +190,7 @@ class ImageAgent:
     @property
     def draw_shape(self) -> tuple[int, ...] | None:
         """The shape of the draws one :meth:`act` takes from torch's stream (None: none)."""
-        return (1, self.agent.config.student.rssm.stoch, 1) \
-            if self.posterior == "sample" else None
+        return posterior_draws(self.agent.config.student.rssm.stoch, self.posterior)
 
     def reset_batch(self, n: int) -> None:
         self._state = None
