@@ -279,6 +279,14 @@ def _cli(*args: str, **kwargs) -> subprocess.CompletedProcess:
                           capture_output=True, timeout=300, **kwargs)
 
 
+def _rows(csv: Path) -> int:
+    """Rows a CSV that another process is writing holds so far (0 before its header lands)."""
+    try:
+        return len(pd.read_csv(csv))
+    except (FileNotFoundError, pd.errors.EmptyDataError):
+        return 0
+
+
 def test_cli_resumes_after_sigkill_and_continues_the_count(distil_inputs, tmp_path) -> None:
     dataset, teacher = distil_inputs
     run = tmp_path / "run"
@@ -288,7 +296,7 @@ def test_cli_resumes_after_sigkill_and_continues_the_count(distil_inputs, tmp_pa
                                 "--steps", "100000"], stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 240
-    while not (run / "metrics.csv").exists() or len(pd.read_csv(run / "metrics.csv")) < 2:
+    while _rows(run / "metrics.csv") < 2:
         assert time.monotonic() < deadline and process.poll() is None
         time.sleep(0.2)
     process.send_signal(signal.SIGKILL)
