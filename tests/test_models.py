@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 import torch
 
 from twist_data.errors import CheckpointError, CheckpointMismatchError, ConfigError
-from twist_models.config import CNNConfig, WorldModelConfig, teacher_preset
+from twist_models.config import CNNConfig, WorldModelConfig, from_json, teacher_preset, to_json
 from twist_models.losses import (
     categorical_kl,
     gaussian_nll,
@@ -305,6 +306,38 @@ def test_state_noise_perturbs_what_the_encoder_reads_and_nothing_else() -> None:
     post, _ = noisy.rssm.observe(noisy.embed(batch["state"]), batch["action"], batch["is_first"])
     decoded = noisy.decoder(noisy.rssm.feature(post))
     torch.testing.assert_close(metrics["recon_loss"], gaussian_nll(decoded, batch["state"]).mean())
+
+
+def test_hidden_state_components_never_reach_the_encoder_but_are_decoded() -> None:
+    config = dataclasses.replace(teacher_preset("tiny", 5, 2).world_model, state_hidden=(3, 4))
+    model = WorldModel(config)
+    batch = _batch()
+    changed = batch["state"].clone()
+    changed[..., 3:] = torch.randn_like(changed[..., 3:]) * 5
+    torch.testing.assert_close(model.embed(changed), model.embed(batch["state"]))
+    masked = batch["state"].clone()
+    masked[..., 3:] = 0.0
+    torch.testing.assert_close(model.embed(batch["state"]), model.encoder(masked))
+    changed[..., 0] += 1.0
+    assert not torch.allclose(model.embed(changed), model.embed(batch["state"]), atol=1e-4)
+    # The decoder still fits all five components, the hidden ones included.
+    _, post, metrics = model.loss(batch)
+    decoded = model.decoder(model.rssm.feature(post))
+    assert decoded.shape[-1] == 5
+    torch.testing.assert_close(metrics["recon_loss"], gaussian_nll(decoded, batch["state"]).mean())
+    # Round trip through the JSON a checkpoint stores.
+    assert from_json(WorldModelConfig, json.loads(json.dumps(to_json(config)))) == config
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    ({"obs": "image", "state_hidden": (1,)}, "state_hidden hides what a state encoder reads"),
+    ({"state_hidden": (5,)}, r"distinct indices in \[0, 5\).*\[5\]"),
+    ({"state_hidden": (1, 1)}, r"distinct indices.*\[1, 1\]"),
+])
+def test_state_hidden_is_refused_off_state_models_or_out_of_range(settings: dict,
+                                                                  message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        WorldModelConfig(state_dim=5, **settings)
 
 
 @pytest.mark.parametrize(("obs", "noise", "message"), [

@@ -217,8 +217,19 @@ class WorldModelConfig:
     teacher perceives the state about as coarsely as a student reads it from images and its
     GRU and actor learn to work from such a belief (``state`` models only; decoder and
     overshooting targets stay exact; 0: exact states, as the paper)."""
+    state_hidden: tuple[int, ...] = ()
+    """Indices of privileged-state components the state encoder never reads (set to 0 before
+    it, in training, acting and as the distillation target), e.g. the velocities: the
+    teacher's latent must then infer them from the history of what it reads, as a student
+    reading images must; the decoder still reconstructs every component (``state`` models
+    only; (): it reads them all, as the paper)."""
 
     def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "state_hidden", tuple(int(i) for i in self.state_hidden))
+        except (TypeError, ValueError):
+            raise ConfigError(f"state_hidden must be a list of state indices, got "
+                              f"{self.state_hidden!r}") from None
         if self.obs not in ("state", "image"):
             raise ConfigError(f"obs must be 'state' or 'image', got {self.obs!r}")
         if self.recon not in ("obs", "state"):
@@ -228,6 +239,13 @@ class WorldModelConfig:
         if self.state_noise and self.obs != "state":
             raise ConfigError(f"state_noise perturbs what a state encoder reads, got "
                               f"state_noise={self.state_noise} with obs={self.obs!r}")
+        if self.state_hidden and self.obs != "state":
+            raise ConfigError(f"state_hidden hides what a state encoder reads, got "
+                              f"state_hidden={list(self.state_hidden)} with obs={self.obs!r}")
+        if self.state_hidden and (len(set(self.state_hidden)) != len(self.state_hidden) or not
+                                  all(0 <= i < self.state_dim for i in self.state_hidden)):
+            raise ConfigError(f"state_hidden must hold distinct indices in [0, {self.state_dim}) "
+                              f"(state_dim), got {list(self.state_hidden)}")
         if self.overshoot and self.obs != "state":
             raise ConfigError(f"overshoot is for state models (decoding images open-loop would "
                               f"dominate the update), got overshoot={self.overshoot} with "

@@ -45,12 +45,13 @@ def actor_sensitivity(teacher: Teacher, deter: torch.Tensor, state: torch.Tensor
     """sum_a (d a / d s_i)^2 of the teacher's action mode at ``deter`` [..., D] and ``state``
     [..., S], through its state encoder, posterior head (z read as the class probabilities,
     so the map is differentiable) and actor, h held fixed -> [..., S]. Exact states: the
-    sensitivity is to the state itself, not to the noise a ``state_noise`` teacher reads."""
+    sensitivity is to the state itself, not to the noise a ``state_noise`` teacher reads (0
+    for the components it never reads, ``state_hidden``)."""
     wm, actor = teacher.world_model, teacher.actor_critic.actor
     deter = deter.detach()
     with torch.enable_grad():
         state = state.detach().clone().requires_grad_(True)
-        logits = wm.rssm.posterior_logits(deter, wm.encoder(state))
+        logits = wm.rssm.posterior_logits(deter, wm.encoder(wm.visible(state)))
         feature = torch.cat([deter, F.softmax(logits, -1).flatten(-2)], -1)
         action = actor(feature).mode
         weight = torch.zeros_like(state)

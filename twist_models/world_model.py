@@ -37,6 +37,12 @@ class WorldModel(nn.Module):
             self.decoder = ImageDecoder(feature, c.cnn)
         self.reward_head = MLP(feature, 1, c.head)
         self.discount_head = MLP(feature, 1, c.head) if c.discount_head else None
+        if c.state_hidden:
+            seen = torch.ones(c.state_dim)
+            seen[list(c.state_hidden)] = 0.0
+            self.register_buffer("state_seen", seen, persistent=False)
+        else:
+            self.state_seen = None
 
     @property
     def obs_key(self) -> str:
@@ -44,10 +50,15 @@ class WorldModel(nn.Module):
 
     def embed(self, observation: torch.Tensor) -> torch.Tensor:
         """Encoder features of ``observation`` ([..., S] state or [..., H, W, 3] image); a state
-        is read through ``state_noise`` (a fresh draw on every call)."""
+        is read through ``state_noise`` (a fresh draw on every call) and without its
+        ``state_hidden`` components."""
         if self.config.state_noise:
             observation = observation + self.config.state_noise * torch.randn_like(observation)
-        return self.encoder(observation)
+        return self.encoder(self.visible(observation))
+
+    def visible(self, state: torch.Tensor) -> torch.Tensor:
+        """``state`` [..., S] with the ``state_hidden`` components set to 0 (images pass)."""
+        return state if self.state_seen is None else state * self.state_seen
 
     def loss(self, batch: dict[str, torch.Tensor],
              state: State | None = None) -> tuple[torch.Tensor, State, dict[str, torch.Tensor]]:
