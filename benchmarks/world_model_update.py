@@ -14,13 +14,19 @@ B=16, L=50, sizes of ``--preset`` (default paper = DreamerV2 DMC), random data (
 depend on values). Each figure is the median over ``--repeats`` updates after one warm-up.
 Prints one JSON line per part.
 
+``--compile`` adds the world-model update of the teacher part and the student update with
+their loss (forward, and through it the backward) wrapped in ``torch.compile``, on copies of
+the same weights; the first call's compile time is reported apart (``compile_s``) and
+``compile_speedup`` is the eager median over the compiled one, both from the same run.
+
     python benchmarks/world_model_update.py [--part teacher|student|all] [--preset paper]
-        [--repeats 5] [--device cpu|cuda] [--imag-starts N]
+        [--repeats 5] [--device cpu|cuda] [--imag-starts N] [--compile]
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import os
@@ -121,8 +127,19 @@ def matching_loss(deter: torch.Tensor, post: torch.Tensor, prior: torch.Tensor,
             + categorical_kl(target["prior"], prior).mean())
 
 
+def compiled_variant(update: Callable[[], None], repeats: int, device: torch.device
+                     ) -> tuple[list[float], float]:
+    """Samples of a compiled update after its first call, and that first call's seconds."""
+    start = time.perf_counter()
+    update()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    return median_time(update, repeats, device), time.perf_counter() - start
+
+
 def bench_teacher(preset: str, repeats: int, device: torch.device,
-                  imag_starts: int | None = None) -> dict[str, object]:
+                  imag_starts: int | None = None, compile_too: bool = False
+                  ) -> dict[str, object]:
     torch.manual_seed(0)
     config = teacher_preset(preset, STATE, ACTIONS)
     if imag_starts is not None:
@@ -160,8 +177,25 @@ def bench_teacher(preset: str, repeats: int, device: torch.device,
                "world_model_s": median_time(world_model_only, repeats, device),
                "teacher_update_s": median_time(lambda: teacher.train_step(batch), repeats,
                                                device)}
+    extra: dict[str, object] = {}
+    if compile_too:
+        twin = copy.deepcopy(teacher)
+        twin_opt = torch.optim.AdamW(twin.world_model.parameters(), wm.model_lr, eps=1e-5)
+        compiled_loss = torch.compile(twin.world_model.loss)
+
+        def world_model_compiled() -> None:
+            loss, _, _ = compiled_loss(batch)
+            twin_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            twin_opt.step()
+
+        samples["world_model_compiled_s"], first = compiled_variant(world_model_compiled,
+                                                                    repeats, device)
+        extra = {"compile_s": round(first, 1), "compile_speedup": round(
+            statistics.median(samples["world_model_s"])
+            / statistics.median(samples["world_model_compiled_s"]), 2)}
     medians = {k: statistics.median(v) for k, v in samples.items()}
-    return {"samples": samples, "medians": medians, "figure": "teacher_update_s",
+    return {"samples": samples, "medians": medians, "figure": "teacher_update_s", **extra,
             "imag_starts": config.actor_critic.imag_starts or B * L,
             "actor_critic_share": round(1 - medians["world_model_s"]
                                         / medians["teacher_update_s"], 2),
@@ -170,7 +204,8 @@ def bench_teacher(preset: str, repeats: int, device: torch.device,
 
 
 def bench_student(preset: str, repeats: int, device: torch.device,
-                  imag_starts: int | None = None) -> dict[str, object]:
+                  imag_starts: int | None = None, compile_too: bool = False
+                  ) -> dict[str, object]:
     torch.manual_seed(0)
     base = teacher_preset(preset, STATE, ACTIONS).world_model
     config = WorldModelConfig(obs="image", state_dim=STATE, action_dim=ACTIONS, rssm=base.rssm,
@@ -184,10 +219,13 @@ def bench_student(preset: str, repeats: int, device: torch.device,
               "post": torch.randn(B, L, r.stoch, r.classes, device=device),
               "prior": torch.randn(B, L, r.stoch, r.classes, device=device)}
 
+    def student_loss(model: WorldModel) -> torch.Tensor:
+        post, prior = model.rssm.observe(model.embed(batch["image"]), batch["action"],
+                                         batch["is_first"])
+        return matching_loss(post["deter"], post["logits"], prior["logits"], target)
+
     def student_update() -> None:
-        post, prior = student.rssm.observe(student.embed(batch["image"]), batch["action"],
-                                           batch["is_first"])
-        loss = matching_loss(post["deter"], post["logits"], prior["logits"], target)
+        loss = student_loss(student)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
@@ -205,8 +243,26 @@ def bench_student(preset: str, repeats: int, device: torch.device,
 
     samples = {"naive_student_s": median_time(naive_update, repeats, device),
                "student_update_s": median_time(student_update, repeats, device)}
+    extra: dict[str, object] = {}
+    if compile_too:
+        twin = copy.deepcopy(student)
+        twin_opt = torch.optim.AdamW([*twin.encoder.parameters(), *twin.rssm.parameters()],
+                                     config.model_lr, eps=1e-5)
+        compiled_loss = torch.compile(student_loss)
+
+        def student_compiled() -> None:
+            loss = compiled_loss(twin)
+            twin_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            twin_opt.step()
+
+        samples["student_compiled_s"], first = compiled_variant(student_compiled, repeats,
+                                                                device)
+        extra = {"compile_s": round(first, 1), "compile_speedup": round(
+            statistics.median(samples["student_update_s"])
+            / statistics.median(samples["student_compiled_s"]), 2)}
     medians = {k: statistics.median(v) for k, v in samples.items()}
-    return {"samples": samples, "medians": medians, "figure": "student_update_s",
+    return {"samples": samples, "medians": medians, "figure": "student_update_s", **extra,
             "speedup_vs_naive": round(medians["naive_student_s"]
                                       / medians["student_update_s"], 2)}
 
@@ -219,12 +275,14 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--imag-starts", type=int, default=None,
                         help="override the preset's imagination starts (teacher part)")
+    parser.add_argument("--compile", action="store_true",
+                        help="also time the updates with their loss in torch.compile")
     args = parser.parse_args()
     device = torch.device(args.device)
     parts = ["teacher", "student"] if args.part == "all" else [args.part]
     for part in parts:
         result = {"teacher": bench_teacher, "student": bench_student}[part](
-            args.preset, args.repeats, device, args.imag_starts)
+            args.preset, args.repeats, device, args.imag_starts, args.compile)
         medians = result.pop("medians")
         samples = result.pop("samples")
         figure = result.pop("figure")
