@@ -331,3 +331,53 @@ def test_bfloat16_autocast_changes_the_arithmetic_not_the_objective(
     assert low.dtype == torch.bfloat16
     with torch.no_grad():
         assert not torch.equal(low.float(), student.encoder(batch["image"][:, :2]))
+
+
+@pytest.mark.slow
+def test_the_compiled_objective_gives_the_eager_loss_gradients_and_step(
+        inputs: tuple[Path, Path, Teacher]) -> None:
+    """``compile=true``: the same loss, gradients and optimiser step as eager, on the same
+    windows and (with inductor drawing its random numbers as eager does) the same draws.
+    Slow: the first compiled call compiles for minutes on a CPU."""
+    import copy
+
+    import torch._inductor.config as inductor
+
+    dataset, _, teacher = inputs
+    data = open_dataset(dataset)
+    # float32: bfloat16 autocast rounds differently once inductor fuses the convolutions' neighbours.
+    config = distil_preset("tiny", "dense", shared_draws=False, precision="float32")
+    targets = teacher_targets(teacher, data, np.arange(data.n_episodes))
+    from twist_data.sampler import WindowSampler
+
+    windows = WindowSampler(data, config.sampler("all", 0)).batch()
+    batch = {k: torch.as_tensor(windows[k]) for k in ("image", "state", "action", "is_first")}
+    start = teacher_latent_before(teacher, targets, windows["start"])
+    batch.update(start_deter=start["deter"], start_stoch=start["stoch"])
+    torch.manual_seed(0)
+    eager = Student(student_preset("tiny", teacher.config, 64, norm="layer", state_head=True))
+    twin = copy.deepcopy(eager)
+    before = [p.detach().clone() for p in eager.parameters()]
+    results = []
+    for student, wrap in ((eager, lambda m: m), (twin, torch.compile)):
+        objective = wrap(Distillation(student, teacher, config, targets.scale))
+        optimiser = torch.optim.Adam(student.parameters(), 1e-3)
+        torch.manual_seed(7)
+        with inductor.patch(fallback_random=True):
+            loss, terms = objective(batch)
+        loss.backward()
+        grads = [p.grad.clone() for p in student.parameters() if p.grad is not None]
+        optimiser.step()
+        results.append((loss.detach(), {k: v.detach() for k, v in terms.items()}, grads,
+                        [p.detach().clone() for p in student.parameters()]))
+    (loss_e, terms_e, grads_e, after_e), (loss_c, terms_c, grads_c, after_c) = results
+    assert torch.allclose(loss_e, loss_c, rtol=1e-4, atol=1e-5)
+    assert terms_e.keys() == terms_c.keys()
+    for key in terms_e:
+        assert torch.allclose(terms_e[key], terms_c[key], rtol=1e-4, atol=1e-5), key
+    assert len(grads_e) == len(grads_c) > 0
+    for g_e, g_c in zip(grads_e, grads_c, strict=True):
+        assert torch.allclose(g_e, g_c, rtol=1e-3, atol=1e-5)
+    for p_e, p_c in zip(after_e, after_c, strict=True):
+        assert torch.allclose(p_e, p_c, rtol=1e-4, atol=1e-6)
+    assert any(not torch.equal(p, q) for p, q in zip(before, after_e, strict=True))

@@ -249,6 +249,9 @@ class _Run:
         if world > 1:
             self.objective = nn.parallel.DistributedDataParallel(
                 self.objective, device_ids=[device.index] if device.type == "cuda" else None)
+        # Compiled for training only: evaluation runs other shapes and would recompile.
+        self.train_objective: Callable[..., Any] = (torch.compile(self.objective)
+                                                    if config.compile else self.objective)
         self.heldout = self._heldout_batch()
         self.heldout_last: dict[str, float] = {}
         self.board = Board(out) if self.writes else None
@@ -351,7 +354,7 @@ class _Run:
             tick = time.perf_counter()
             batch = self._window_batch(next(windows))
             waited = time.perf_counter() - tick
-            loss, terms = self.objective(batch)
+            loss, terms = self.train_objective(batch)
             self.optimiser.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
