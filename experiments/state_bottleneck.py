@@ -1,0 +1,191 @@
+"""Can the teacher's own filter act on positions a CNN reads from the image?
+
+A teacher whose state encoder never reads the velocities (``state_hidden``) infers them in
+its recurrence from successive positions, as a pixel Dreamer must. Its filter could then run
+on positions read from one randomised image each step: a student whose only learned part is
+a CNN, with the teacher's posterior, GRU and actor unchanged. This script measures that
+student on cartpole-balance:
+
+``train DATASET OUT``: a CNN (the ``quick`` preset's, layer-normalised, bfloat16 autocast)
+with a linear head regresses the cart's position and the pole's sine on D's training frames
+within ``--within`` of upright (cosine at least that), each standardised over those frames
+(the target under which the near-upright lean was learned, docs/experiments.md);
+``--all-frames`` trains on every frame with the same scaling and a Huber loss. Every
+``--every`` updates it prints the held-out RMSE of both, and the sine's RMSE on frames within
+10° of upright beside that set's spread, as JSON lines; it saves ``OUT`` (weights and the
+standardisation; plain tensors, loaded with ``weights_only``).
+
+``policy``: the agent ``twist-eval`` imports (``--agent state_bottleneck:policy`` with
+``experiments`` on ``PYTHONPATH``), built from ``TWIST_BOTTLENECK_CNN`` (the file ``train``
+wrote) and ``TWIST_BOTTLENECK_TEACHER`` (the teacher checkpoint): each step it reads x and
+sin θ from the image, sets cos θ = sqrt(1 - sin² θ) (the pole above horizontal) and the
+velocities to 0 (the teacher never reads them), and acts with the teacher's ``policy`` on
+that state, its posterior sampled as the oracle's is.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.sampler import heldout_episodes
+from twist_models.config import PRESETS, CNNConfig
+from twist_models.distillation import encoder_autocast
+from twist_models.networks import ImageEncoder
+from twist_models.teacher import load_teacher
+
+#: Cartpole's state layout: cart x, cos θ, sin θ, then the velocities.
+X, COS, SIN = 0, 1, 2
+READ = (X, SIN)
+
+
+def reader(image_size: int) -> tuple[nn.Module, nn.Module]:
+    cnn = dataclasses.replace(PRESETS["quick"].get("cnn", CNNConfig()), image_size=image_size,
+                              norm="layer")
+    encoder = ImageEncoder(cnn)
+    return encoder, nn.Linear(encoder.out_dim, len(READ))
+
+
+def frames(data: MatchingDataset, steps: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
+    out = np.empty((steps.size, *data.spec.image_shape), np.uint8)
+    data.read_frames(steps, rng.integers(0, data.spec.views, steps.size), out)
+    return torch.as_tensor(out)
+
+
+def train(args: argparse.Namespace) -> None:
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    data = open_dataset(args.dataset)
+    states = data.column("state").astype(np.float32)
+    held = np.repeat(heldout_episodes(data.n_episodes, 10), data.episode_lengths)
+    kept = states[:, COS] >= args.within
+    train_steps, test_steps = np.flatnonzero(~held & kept), np.flatnonzero(held & kept)
+    mean = states[train_steps][:, READ].mean(0)
+    scale = states[train_steps][:, READ].std(0).clip(1e-4)
+    if args.all_frames:  # the same scaling, every training frame, a bounded-gradient loss
+        train_steps = np.flatnonzero(~held)
+    target = torch.as_tensor((states[:, READ] - mean) / scale)
+    test_steps = np.sort(rng.choice(test_steps, min(1024, test_steps.size), replace=False))
+    test_images = frames(data, test_steps, rng)
+    near = states[test_steps, COS] >= 0.985
+    near_spread = states[test_steps][near][:, SIN].std()
+    encoder, head = reader(data.spec.image_height)
+    optimiser = torch.optim.Adam([*encoder.parameters(), *head.parameters()], args.lr)
+    device = torch.device("cpu")
+    start = time.perf_counter()
+    for update in range(1, args.steps + 1):
+        steps = rng.choice(train_steps, args.batch)
+        with encoder_autocast("auto", device):
+            predicted = head(encoder(frames(data, steps, rng))).float()
+        loss = (nn.functional.huber_loss(predicted, target[steps]) if args.all_frames
+                else ((predicted - target[steps]) ** 2).mean())
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        if update % args.every == 0 or update == args.steps:
+            with torch.no_grad(), encoder_autocast("auto", device):
+                test = head(encoder(test_images)).float().numpy() * scale + mean
+            error = test - states[test_steps][:, READ]
+            print(json.dumps({
+                "updates": update, "loss": round(float(loss.detach()), 4),
+                "rmse_x": round(float(np.sqrt((error[:, 0] ** 2).mean())), 4),
+                "rmse_sin": round(float(np.sqrt((error[:, 1] ** 2).mean())), 4),
+                "near_rmse_sin": round(float(np.sqrt((error[near, 1] ** 2).mean())), 4),
+                "near_spread_sin": round(float(near_spread), 4),
+                "seconds": round(time.perf_counter() - start, 1)}), flush=True)
+            torch.save({"encoder": encoder.state_dict(), "head": head.state_dict(),
+                        "mean": torch.as_tensor(mean), "scale": torch.as_tensor(scale),
+                        "image_size": data.spec.image_height}, args.out)
+
+
+class BottleneckPolicy:
+    """The teacher's filter and actor on the state a CNN reads from each image."""
+
+    observe = ("image", "state")
+    task = "cartpole-balance"
+
+    def __init__(self) -> None:
+        self._loaded = False
+
+    def _load(self) -> None:
+        saved = torch.load(os.environ["TWIST_BOTTLENECK_CNN"], weights_only=True)
+        self.encoder, self.head = reader(int(saved["image_size"]))
+        self.encoder.load_state_dict(saved["encoder"])
+        self.head.load_state_dict(saved["head"])
+        self.encoder.eval()
+        self.mean, self.scale = saved["mean"], saved["scale"]
+        self.teacher, _ = load_teacher(os.environ["TWIST_BOTTLENECK_TEACHER"])
+        self.teacher.eval()
+        self.state_dim = self.teacher.config.world_model.state_dim
+        self.action_dim = self.teacher.config.world_model.action_dim
+        self._loaded = True
+
+    def reset(self) -> None:
+        if not self._loaded:
+            self._load()
+            self.errors: list[list[float]] = []
+        self.latent, self.first = None, True
+        self.previous = torch.zeros(1, self.action_dim)
+
+    @torch.no_grad()
+    def __call__(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        image = torch.as_tensor(observation["image"])[None]
+        read = self.head(self.encoder(image)).float()[0] * self.scale + self.mean
+        sine = read[1].clamp(-1.0, 1.0)
+        state = torch.zeros(1, self.state_dim)
+        state[0, X], state[0, SIN], state[0, COS] = read[0], sine, (1 - sine**2).sqrt()
+        truth = observation["state"]
+        self.errors.append([float(read[0]) - truth[X], float(sine) - truth[SIN], truth[COS]])
+        first = torch.tensor([self.first])
+        action, self.latent = self.teacher.policy(state, self.latent, self.previous, first,
+                                                  explore=False)
+        self.previous, self.first = action, False
+        if os.environ.get("TWIST_BOTTLENECK_LOG") and len(self.errors) % 250 == 0:
+            self._write_errors(os.environ["TWIST_BOTTLENECK_LOG"])
+        return action[0].numpy()
+
+
+    def _write_errors(self, path: str) -> None:
+        """The read-out's RMSE in closed loop so far, over all steps and within 10° of
+        upright (the image reads the state the policy itself led to)."""
+        errors = np.asarray(self.errors)
+        near = errors[:, 2] >= 0.985
+        with open(path, "w") as f:
+            json.dump({"steps": len(errors), "rmse_x": float(np.sqrt((errors[:, 0] ** 2).mean())),
+                       "rmse_sin": float(np.sqrt((errors[:, 1] ** 2).mean())),
+                       "near_steps": int(near.sum()),
+                       "near_rmse_sin": float(np.sqrt((errors[near, 1] ** 2).mean())),
+                       "near_bias_sin": float(errors[near, 1].mean())}, f)
+
+
+policy = BottleneckPolicy()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("train")
+    t.add_argument("dataset")
+    t.add_argument("out")
+    t.add_argument("--steps", type=int, default=15_000)
+    t.add_argument("--batch", type=int, default=64)
+    t.add_argument("--lr", type=float, default=3e-4)
+    t.add_argument("--within", type=float, default=0.94, help="cosine of the widest lean kept")
+    t.add_argument("--every", type=int, default=1000)
+    t.add_argument("--all-frames", action="store_true",
+                   help="train on every frame (Huber loss), scaled as the kept ones")
+    t.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    train(args)
+
+
+if __name__ == "__main__":
+    main()
