@@ -25,6 +25,11 @@ settings: pass D's (``--supersample 2``, and ``--action-repeat 4`` unless a teac
 is evaluated beside it, whose repeat the run then takes). With ``TWIST_BOTTLENECK_LOG`` set it
 writes there, as JSON, the read-out's closed-loop RMSE against the true state so far (every
 250 steps).
+
+``python experiments/state_bottleneck.py train DATASET OUT [--steps 15000] [--within 0.94]
+[--all-frames]``, then ``TWIST_BOTTLENECK_CNN=OUT TWIST_BOTTLENECK_TEACHER=TEACHER
+PYTHONPATH=experiments twist-eval --agent oracle=TEACHER --agent state_bottleneck:policy
+--dr heldout --supersample 2``.
 """
 
 from __future__ import annotations
