@@ -60,11 +60,6 @@ from twist_models.teacher import load_teacher
 TestSet = tuple[torch.Tensor, torch.Tensor]
 
 
-def frames(data: MatchingDataset, steps: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
-    out = np.empty((steps.size, *data.spec.image_shape), np.uint8)
-    data.read_frames(steps, rng.integers(0, data.spec.views, steps.size), out)
-    return torch.as_tensor(out)
-
 
 def held_out_scores(encoder: nn.Module, head: nn.Module, tests: dict[str, TestSet],
                     scale: torch.Tensor, sensitivity: dict[str, torch.Tensor] | None = None
@@ -99,7 +94,8 @@ def probe(encoder: nn.Module, train_encoder: bool, data: MatchingDataset, target
     optimiser = torch.optim.Adam(params, lr=args.lr)
     for update in range(1, args.steps + 1):
         steps = rng.choice(train, args.batch)
-        squared = (head(encoder(frames(data, steps, rng))) - target[steps]) ** 2
+        images = torch.as_tensor(data.frames_of_random_views(steps, rng))
+        squared = (head(encoder(images)) - target[steps]) ** 2
         loss = (squared * weight[steps]).sum(1).mean() if weight is not None else squared.mean()
         optimiser.zero_grad()
         loss.backward()
@@ -169,7 +165,7 @@ def main() -> None:
         if steps.size < 2:
             raise SystemExit(f"only {steps.size} held-out frames in the {name!r} set")
         chosen = np.sort(rng.choice(steps, min(args.test_frames, steps.size), replace=False))
-        tests[name] = (frames(data, chosen, rng), target[chosen])
+        tests[name] = (torch.as_tensor(data.frames_of_random_views(chosen, rng)), target[chosen])
         tests_steps[name] = chosen
     cnn = dataclasses.replace(PRESETS[args.preset].get("cnn", CNNConfig()),
                               image_size=data.spec.image_height, norm=args.norm)

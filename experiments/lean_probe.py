@@ -23,17 +23,10 @@ import numpy as np
 import torch
 from torch.nn import functional
 
-from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.config import CNN_NORMS, PRESETS, CNNConfig
 from twist_models.networks import ImageEncoder
-
-
-def frames(data: MatchingDataset, steps: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
-    """D's frames at ``steps``, each from a random one of its views: uint8 [N, H, W, 3]."""
-    out = np.empty((steps.size, *data.spec.image_shape), np.uint8)
-    data.read_frames(steps, rng.integers(0, data.spec.views, steps.size), out)
-    return torch.as_tensor(out)
 
 
 def main() -> None:
@@ -62,7 +55,8 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     test = np.flatnonzero(leaning & held)
     test = rng.choice(test, min(args.test_frames, test.size), replace=False)
-    test_images, test_labels = frames(data, test, rng), torch.as_tensor(value[test] > 0)
+    test_images = torch.as_tensor(data.frames_of_random_views(test, rng))
+    test_labels = torch.as_tensor(value[test] > 0)
     result: dict[str, object] = {"dataset": args.dataset, "train_frames": [positive.size,
                                  negative.size], "heldout_frames": int(test.size)}
     for norm in args.norm:
@@ -76,7 +70,8 @@ def main() -> None:
         for update in range(1, args.steps + 1):
             half = args.batch // 2
             steps = np.r_[rng.choice(positive, half), rng.choice(negative, half)]
-            logits = head(encoder(frames(data, steps, rng)))[:, 0]
+            images = torch.as_tensor(data.frames_of_random_views(steps, rng))
+            logits = head(encoder(images))[:, 0]
             loss = functional.binary_cross_entropy_with_logits(
                 logits, torch.as_tensor(value[steps] > 0).float())
             optimiser.zero_grad()

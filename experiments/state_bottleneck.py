@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.config import PRESETS, CNNConfig
 from twist_models.distillation import encoder_autocast
@@ -63,11 +63,6 @@ def reader(image_size: int) -> tuple[nn.Module, nn.Module]:
     return encoder, nn.Linear(encoder.out_dim, len(READ))
 
 
-def frames(data: MatchingDataset, steps: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
-    out = np.empty((steps.size, *data.spec.image_shape), np.uint8)
-    data.read_frames(steps, rng.integers(0, data.spec.views, steps.size), out)
-    return torch.as_tensor(out)
-
 
 def train(args: argparse.Namespace) -> None:
     torch.manual_seed(args.seed)
@@ -77,13 +72,13 @@ def train(args: argparse.Namespace) -> None:
     held = np.repeat(heldout_episodes(data.n_episodes, 10), data.episode_lengths)
     kept = states[:, COS] >= args.within
     train_steps, test_steps = np.flatnonzero(~held & kept), np.flatnonzero(held & kept)
-    mean = states[train_steps][:, READ].mean(0)
-    scale = states[train_steps][:, READ].std(0).clip(1e-4)
+    kept_read = states[train_steps][:, READ]
+    mean, scale = kept_read.mean(0), kept_read.std(0).clip(1e-4)
     if args.all_frames:  # the same scaling, every training frame, a bounded-gradient loss
         train_steps = np.flatnonzero(~held)
     target = torch.as_tensor((states[:, READ] - mean) / scale)
     test_steps = np.sort(rng.choice(test_steps, min(1024, test_steps.size), replace=False))
-    test_images = frames(data, test_steps, rng)
+    test_images = torch.as_tensor(data.frames_of_random_views(test_steps, rng))
     near = states[test_steps, COS] >= 0.985
     near_spread = states[test_steps][near][:, SIN].std()
     encoder, head = reader(data.spec.image_height)
@@ -93,7 +88,8 @@ def train(args: argparse.Namespace) -> None:
     for update in range(1, args.steps + 1):
         steps = rng.choice(train_steps, args.batch)
         with encoder_autocast("auto", device):
-            predicted = head(encoder(frames(data, steps, rng))).float()
+            images = torch.as_tensor(data.frames_of_random_views(steps, rng))
+            predicted = head(encoder(images)).float()
         loss = (nn.functional.huber_loss(predicted, target[steps]) if args.all_frames
                 else ((predicted - target[steps]) ** 2).mean())
         optimiser.zero_grad(set_to_none=True)
@@ -123,6 +119,7 @@ class BottleneckPolicy:
 
     def __init__(self) -> None:
         self._loaded = False
+        self.errors: list[list[float]] = []
 
     def _load(self) -> None:
         saved = torch.load(os.environ["TWIST_BOTTLENECK_CNN"], weights_only=True)
@@ -140,7 +137,6 @@ class BottleneckPolicy:
     def reset(self) -> None:
         if not self._loaded:
             self._load()
-            self.errors: list[list[float]] = []
         self.latent, self.first = None, True
         self.previous = torch.zeros(1, self.action_dim)
 
@@ -160,7 +156,6 @@ class BottleneckPolicy:
         if os.environ.get("TWIST_BOTTLENECK_LOG") and len(self.errors) % 250 == 0:
             self._write_errors(os.environ["TWIST_BOTTLENECK_LOG"])
         return action[0].numpy()
-
 
     def _write_errors(self, path: str) -> None:
         """The read-out's RMSE in closed loop so far, over all steps and within 10° of

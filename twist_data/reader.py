@@ -422,6 +422,13 @@ class MatchingDataset:
             sel = loc.shard == s
             self.shards[s].read_frames(loc.step[sel], views[sel], out, rows[sel])
 
+    def frames_of_random_views(self, steps: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The frames of global ``steps`` [n], each from a view drawn uniformly by ``rng``:
+        uint8 [n, H, W, 3]."""
+        out = np.empty((steps.size, *self.spec.image_shape), np.uint8)
+        self.read_frames(steps, rng.integers(0, self.spec.views, steps.size), out)
+        return out
+
     def episode(self, index: int) -> Episode:
         """Global episode ``index`` (episodes numbered over shards in shard-name order)."""
         shard, local = self.episode_location(index)
