@@ -24,7 +24,8 @@ that state, its posterior sampled as the oracle's is. An imported policy carries
 settings: pass D's (``--supersample 2``, and ``--action-repeat 4`` unless a teacher checkpoint
 is evaluated beside it, whose repeat the run then takes). With ``TWIST_BOTTLENECK_LOG`` set it
 writes there, as JSON, the read-out's closed-loop RMSE against the true state so far (every
-250 steps).
+250 steps), and beside it (``<stem>.visited.npy``) each step's true state followed by the
+x and sin θ read from its image.
 
 ``python experiments/state_bottleneck.py train DATASET OUT [--steps 15000] [--within 0.94]
 [--all-frames]``, then ``TWIST_BOTTLENECK_CNN=OUT TWIST_BOTTLENECK_TEACHER=TEACHER
@@ -120,6 +121,7 @@ class BottleneckPolicy:
     def __init__(self) -> None:
         self._loaded = False
         self.errors: list[list[float]] = []
+        self.visited: list[list[float]] = []
 
     def _load(self) -> None:
         saved = torch.load(os.environ["TWIST_BOTTLENECK_CNN"], weights_only=True)
@@ -149,6 +151,7 @@ class BottleneckPolicy:
         state[0, X], state[0, SIN], state[0, COS] = read[0], sine, (1 - sine**2).sqrt()
         truth = observation["state"]
         self.errors.append([float(read[0]) - truth[X], float(sine) - truth[SIN], truth[COS]])
+        self.visited.append([*np.asarray(truth, np.float64), float(read[0]), float(sine)])
         first = torch.tensor([self.first])
         action, self.latent = self.teacher.policy(state, self.latent, self.previous, first,
                                                   explore=False)
@@ -168,6 +171,7 @@ class BottleneckPolicy:
                        "near_steps": int(near.sum()),
                        "near_rmse_sin": float(np.sqrt((errors[near, 1] ** 2).mean())),
                        "near_bias_sin": float(errors[near, 1].mean())}, f)
+        np.save(os.path.splitext(path)[0] + ".visited.npy", np.asarray(self.visited))
 
 
 policy = BottleneckPolicy()

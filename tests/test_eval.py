@@ -477,3 +477,33 @@ def test_episodes_stepped_together_are_the_episodes_run_alone(gl, agents) -> Non
             assert difference.max() <= 1, (spec, episode)
         # The trained agents acted through act_batch; the scripted one, one episode at a time.
         assert (lone_calls == 0) == (spec != "random"), spec
+
+
+def test_saved_trajectories_replay_to_the_same_states_and_rewards(tmp_path) -> None:
+    # The saved actions, replayed in a fresh environment from the episode's seed, must give
+    # back the saved states and rewards, and the rewards must sum to the reported return.
+    from twist_data.seeding import evaluation_episode_seed
+    from twist_models.stages.evaluation import TRAJECTORIES, trajectory_name
+
+    config = EvalConfig(task="cartpole-balance", dr="none", episodes=2, max_steps=12)
+    run_evaluation({"random": "random", "zero": "zero"}, config, [3], tmp_path,
+                   trajectories=True)
+    table = pd.read_csv(tmp_path / "episodes.csv")
+    assert len(list((tmp_path / TRAJECTORIES).iterdir())) == 4
+    for _, row in table.iterrows():
+        saved = np.load(tmp_path / TRAJECTORIES / trajectory_name(row.agent, 3, row.episode))
+        steps = int(row.steps)
+        assert saved["state"].shape == (steps + 1, 5)
+        assert saved["action"].shape == (steps, 1) and saved["reward"].shape == (steps,)
+        assert saved["reward"].sum() == pytest.approx(row["return"], rel=1e-5)
+        env = TaskEnv("cartpole-balance", config.action_repeat, max_steps=12)
+        states = [env.reset(seed=evaluation_episode_seed(3, int(row.episode))).state]
+        rewards = []
+        for action in saved["action"]:
+            step = env.step(action)
+            states.append(step.state)
+            rewards.append(step.reward)
+        np.testing.assert_allclose(saved["state"], np.stack(states), atol=1e-6)
+        np.testing.assert_allclose(saved["reward"], rewards, atol=1e-6)
+    assert not table.loc[table.agent == "random", "return"].eq(
+        table.loc[table.agent == "zero", "return"].to_numpy()).all()

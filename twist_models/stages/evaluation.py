@@ -371,16 +371,22 @@ class EpisodeResult:
     episode_seed: int
     episode_return: float
     steps: int
+    trajectory: dict[str, np.ndarray] | None = None
+    """With ``trajectories``: ``state`` [T+1, S] at every agent step, ``action`` [T, A] and
+    ``reward`` [T] after it."""
 
 
 def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
              on_episode: Callable[[EpisodeResult], None] | None = None,
              record: Callable[[int, np.ndarray], None] | None = None,
-             skip: frozenset[int] = frozenset(), batch: int = 1) -> list[EpisodeResult]:
+             skip: frozenset[int] = frozenset(), batch: int = 1,
+             trajectories: bool = False) -> list[EpisodeResult]:
     """Run ``config.episodes`` episodes of ``agent``, but those in ``skip``;
     ``record(episode, frame)`` receives the rendered view of every step (for videos) when
-    given. Each episode depends only on (seed, its index), so a skipped episode changes none
-    of the others.
+    given; with ``trajectories`` each result carries its episode's states, actions and
+    rewards (where the agent went, to set beside the states its training data holds). Each
+    episode depends only on (seed, its index), so a skipped episode changes none of the
+    others.
 
     ``batch`` > 1 steps that many episodes together, with one batched call of an agent that
     has ``act_batch`` (one call per episode otherwise). Each episode keeps its own torch
@@ -409,7 +415,7 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
         for lo in range(0, len(todo), width):
             group = todo[lo:lo + width]
             for result in _run_group(agent, envs, samplers, renderer, seed, group, render,
-                                     record, batched):
+                                     record, batched, trajectories):
                 results.append(result)
                 if on_episode is not None:
                     on_episode(result)
@@ -418,8 +424,8 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
 
 def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
                renderer: DRRenderer, seed: int, episodes: list[int], render: bool,
-               record: Callable[[int, np.ndarray], None] | None, batched: bool
-               ) -> list[EpisodeResult]:
+               record: Callable[[int, np.ndarray], None] | None, batched: bool,
+               trajectories: bool = False) -> list[EpisodeResult]:
     """``episodes`` stepped together until each ends: one episode per slot, each slot with
     its environment, its DR sampler and its random stream. Alone (not ``batched``: one
     slot), the agent draws from torch's stream seeded by the episode seed; batched, each
@@ -437,6 +443,8 @@ def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
     totals, counts = [0.0] * n, [0] * n
     done = [False] * n
     images: list[np.ndarray | None] = [None] * n
+    visited: list[list[np.ndarray]] = [[s.state] for s in steps]
+    acted: list[list[np.ndarray]] = [[] for _ in steps]
     while True:
         for slot in range(n):
             if done[slot]:
@@ -455,11 +463,23 @@ def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
             with torch.no_grad():
                 actions = [np.asarray(agent.act(steps[0], images[0]), np.float32)]
         for slot in live:
-            steps[slot] = envs[slot].step(np.clip(actions[slot], -1.0, 1.0))
+            action = np.clip(actions[slot], -1.0, 1.0)
+            steps[slot] = envs[slot].step(action)
             totals[slot] += steps[slot].reward
             counts[slot] += 1
-    return [EpisodeResult(seed, i, s, totals[k], counts[k])
+            if trajectories:
+                visited[slot].append(steps[slot].state)
+                acted[slot].append((action, steps[slot].reward))
+    return [EpisodeResult(seed, i, s, totals[k], counts[k],
+                          _trajectory(visited[k], acted[k]) if trajectories else None)
             for k, (i, s) in enumerate(zip(episodes, seeds, strict=True))]
+
+
+def _trajectory(states: list[np.ndarray], acted: list[tuple[np.ndarray, float]]
+                ) -> dict[str, np.ndarray]:
+    return {"state": np.stack(states).astype(np.float32),
+            "action": np.array([a for a, _ in acted], np.float32).reshape(len(acted), -1),
+            "reward": np.array([r for _, r in acted], np.float32)}
 
 
 def _act_batch(agent: EvalAgent, steps: list[Step], images: list[np.ndarray | None],
@@ -477,6 +497,12 @@ def _act_batch(agent: EvalAgent, steps: list[Step], images: list[np.ndarray | No
 
 # -- a whole evaluation: several agents, seeds, files ---------------------------------------------
 EPISODE_COLUMNS = ("agent", "kind", "seed", "episode", "episode_seed", "return", "steps")
+TRAJECTORIES = "trajectories"
+
+
+def trajectory_name(agent: str, seed: int, episode: int) -> str:
+    """The file under ``trajectories/`` that holds one evaluated episode."""
+    return f"{agent}-seed{seed}-episode{episode}.npz"
 
 
 def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
@@ -485,8 +511,8 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                    device: str = "cpu",
                    on_episode: Callable[[str, EpisodeResult], None] | None = None,
                    against: str | None = None, resume: bool = False,
-                   on_progress: Callable[[int, int], None] | None = None, batch: int = 1
-                   ) -> dict[str, Any]:
+                   on_progress: Callable[[int, int], None] | None = None, batch: int = 1,
+                   trajectories: bool = False) -> dict[str, Any]:
     """Evaluate every ``name: checkpoint`` (or loaded agent) on the same episodes for each seed and write
     ``episodes.csv``, ``summary.json``, ``returns.png`` and ``videos`` mp4s per agent to
     ``out``. Returns the summary: per agent the mean and std over seeds of the per-seed mean
@@ -500,7 +526,8 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
     are kept and not run again, provided its ``eval-config.json`` matches ``config`` in every
     field but ``episodes`` (agents and seeds may be added). ``on_progress(done, total)``
     follows the episodes asked for, those found done included. ``batch``: episodes stepped
-    together (:func:`evaluate`)."""
+    together (:func:`evaluate`). ``trajectories``: each episode's states, actions and rewards
+    go to ``trajectories/NAME-seedS-episodeE.npz`` as it finishes."""
     if not agents:
         raise EvalError("no agents to evaluate")
     if not seeds:
@@ -539,6 +566,10 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                     "agent": name, "kind": kind, "seed": result.seed,
                     "episode": result.episode, "episode_seed": result.episode_seed,
                     "return": result.episode_return, "steps": result.steps}, EPISODE_COLUMNS)
+                if result.trajectory is not None:
+                    (out / TRAJECTORIES).mkdir(exist_ok=True)
+                    np.savez(out / TRAJECTORIES / trajectory_name(name, result.seed, result.episode),
+                             **result.trajectory)
                 if on_episode is not None:
                     on_episode(name, result)
                 nonlocal count
@@ -547,7 +578,7 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                     on_progress(count, total)
 
             skip = frozenset(e for a, s_, e in done if a == name and s_ == seed)
-            evaluate(agent, config, seed, finished, record, skip, batch)
+            evaluate(agent, config, seed, finished, record, skip, batch, trajectories)
             for episode, clip in frames.items():
                 write_video(episode_strip(np.stack(clip)[:, None]),
                             out / f"{name}-seed{seed}-episode{episode}.mp4")
