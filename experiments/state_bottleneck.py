@@ -10,7 +10,8 @@ student on cartpole-balance:
 with a linear head regresses the cart's position and the pole's sine on D's training frames
 within ``--within`` of upright (cosine at least that), each standardised over those frames
 (the target under which the near-upright lean was learned, docs/experiments.md);
-``--all-frames`` trains on every frame with the same scaling and a Huber loss. Every
+``--all-frames`` trains on every frame with a Huber loss to read the cosine as well (in the
+sine's scaling), so that the angle is known on the whole circle. Every
 ``--every`` updates it prints the held-out RMSE of both, and the sine's RMSE on frames within
 10° of upright beside that set's spread, as JSON lines; it saves ``OUT`` (weights and the
 standardisation; plain tensors, loaded with ``weights_only``).
@@ -20,7 +21,11 @@ standardisation; plain tensors, loaded with ``weights_only``).
 wrote) and ``TWIST_BOTTLENECK_TEACHER`` (the teacher checkpoint): each step it reads x and
 sin θ from the image, sets cos θ = sqrt(1 - sin² θ) (the pole above horizontal) and the
 velocities to 0 (the teacher never reads them), and acts with the teacher's ``policy`` on
-that state, its posterior sampled as the oracle's is. An imported policy carries no render
+that state, its posterior sampled as the oracle's is. With
+``TWIST_BOTTLENECK_VELOCITIES=difference`` the velocities are instead the differences of
+successive read-outs over ``TWIST_BOTTLENECK_DT`` seconds (default 0.04: cartpole's 0.01 s at
+action repeat 4), 0 on the first step: what two images show, for a teacher that reads the
+full state. An imported policy carries no render
 settings: pass D's (``--supersample 2``, and ``--action-repeat 4`` unless a teacher checkpoint
 is evaluated beside it, whose repeat the run then takes). With ``TWIST_BOTTLENECK_LOG`` set it
 writes there, as JSON, the read-out's closed-loop RMSE against the true state so far (every
@@ -53,15 +58,16 @@ from twist_models.networks import ImageEncoder
 from twist_models.teacher import load_teacher
 
 #: Cartpole's state layout: cart x, cos θ, sin θ, then the velocities.
-X, COS, SIN = 0, 1, 2
-READ = (X, SIN)
+X, COS, SIN, X_VELOCITY, ANGULAR_VELOCITY = 0, 1, 2, 3, 4
+#: What the CNN reads: near upright the sine gives the angle; over every frame the cosine too.
+NEAR_READ, ALL_READ = (X, SIN), (X, COS, SIN)
 
 
-def reader(image_size: int) -> tuple[nn.Module, nn.Module]:
+def reader(image_size: int, outputs: int) -> tuple[nn.Module, nn.Module]:
     cnn = dataclasses.replace(PRESETS["quick"].get("cnn", CNNConfig()), image_size=image_size,
                               norm="layer")
     encoder = ImageEncoder(cnn)
-    return encoder, nn.Linear(encoder.out_dim, len(READ))
+    return encoder, nn.Linear(encoder.out_dim, outputs)
 
 
 
@@ -71,18 +77,20 @@ def train(args: argparse.Namespace) -> None:
     data = open_dataset(args.dataset)
     states = data.column("state").astype(np.float32)
     held = np.repeat(heldout_episodes(data.n_episodes, 10), data.episode_lengths)
+    read = ALL_READ if args.all_frames else NEAR_READ
     kept = states[:, COS] >= args.within
     train_steps, test_steps = np.flatnonzero(~held & kept), np.flatnonzero(held & kept)
-    kept_read = states[train_steps][:, READ]
+    kept_read = states[train_steps][:, read]
     mean, scale = kept_read.mean(0), kept_read.std(0).clip(1e-4)
     if args.all_frames:  # the same scaling, every training frame, a bounded-gradient loss
         train_steps = np.flatnonzero(~held)
-    target = torch.as_tensor((states[:, READ] - mean) / scale)
+        scale[1] = scale[2]  # the cosine in the sine's units: near upright it barely moves
+    target = torch.as_tensor((states[:, read] - mean) / scale)
     test_steps = np.sort(rng.choice(test_steps, min(1024, test_steps.size), replace=False))
     test_images = torch.as_tensor(data.frames_of_random_views(test_steps, rng))
     near = states[test_steps, COS] >= 0.985
     near_spread = states[test_steps][near][:, SIN].std()
-    encoder, head = reader(data.spec.image_height)
+    encoder, head = reader(data.spec.image_height, len(read))
     optimiser = torch.optim.Adam([*encoder.parameters(), *head.parameters()], args.lr)
     device = torch.device("cpu")
     start = time.perf_counter()
@@ -99,7 +107,7 @@ def train(args: argparse.Namespace) -> None:
         if update % args.every == 0 or update == args.steps:
             with torch.no_grad(), encoder_autocast("auto", device):
                 test = head(encoder(test_images)).float().numpy() * scale + mean
-            error = test - states[test_steps][:, READ]
+            error = (test - states[test_steps][:, read])[:, [0, -1]]  # x and the sine
             print(json.dumps({
                 "updates": update, "loss": round(float(loss.detach()), 4),
                 "rmse_x": round(float(np.sqrt((error[:, 0] ** 2).mean())), 4),
@@ -109,7 +117,8 @@ def train(args: argparse.Namespace) -> None:
                 "seconds": round(time.perf_counter() - start, 1)}), flush=True)
             torch.save({"encoder": encoder.state_dict(), "head": head.state_dict(),
                         "mean": torch.as_tensor(mean), "scale": torch.as_tensor(scale),
-                        "image_size": data.spec.image_height}, args.out)
+                        "image_size": data.spec.image_height, "read": torch.tensor(read)},
+                       args.out)
 
 
 class BottleneckPolicy:
@@ -125,7 +134,8 @@ class BottleneckPolicy:
 
     def _load(self) -> None:
         saved = torch.load(os.environ["TWIST_BOTTLENECK_CNN"], weights_only=True)
-        self.encoder, self.head = reader(int(saved["image_size"]))
+        self.read = tuple(saved.get("read", torch.tensor(NEAR_READ)).tolist())
+        self.encoder, self.head = reader(int(saved["image_size"]), len(self.read))
         self.encoder.load_state_dict(saved["encoder"])
         self.head.load_state_dict(saved["head"])
         self.encoder.eval()
@@ -141,14 +151,25 @@ class BottleneckPolicy:
             self._load()
         self.latent, self.first = None, True
         self.previous = torch.zeros(1, self.action_dim)
+        self.last_read: tuple[float, float] | None = None
 
     @torch.no_grad()
     def __call__(self, observation: dict[str, np.ndarray]) -> np.ndarray:
         image = torch.as_tensor(observation["image"])[None]
         read = self.head(self.encoder(image)).float()[0] * self.scale + self.mean
-        sine = read[1].clamp(-1.0, 1.0)
+        if COS in self.read:  # both read: the angle on the whole circle
+            angle = float(torch.atan2(read[-1], read[1]))
+        else:  # the pole above horizontal
+            angle = float(torch.asin(read[-1].clamp(-1.0, 1.0)))
+        sine = torch.tensor(np.sin(angle))
         state = torch.zeros(1, self.state_dim)
-        state[0, X], state[0, SIN], state[0, COS] = read[0], sine, (1 - sine**2).sqrt()
+        state[0, X], state[0, SIN], state[0, COS] = read[0], sine, float(np.cos(angle))
+        if os.environ.get("TWIST_BOTTLENECK_VELOCITIES") == "difference" and self.last_read:
+            step = float(os.environ.get("TWIST_BOTTLENECK_DT", "0.04"))
+            turned = (angle - self.last_read[1] + np.pi) % (2 * np.pi) - np.pi
+            state[0, X_VELOCITY] = (float(read[0]) - self.last_read[0]) / step
+            state[0, ANGULAR_VELOCITY] = turned / step
+        self.last_read = (float(read[0]), angle)
         truth = observation["state"]
         self.errors.append([float(read[0]) - truth[X], float(sine) - truth[SIN], truth[COS]])
         self.visited.append([*np.asarray(truth, np.float64), float(read[0]), float(sine)])
