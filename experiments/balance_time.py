@@ -12,16 +12,16 @@ alone cannot tell the two apart. This script reads the trajectories ``twist-eval
 * ``fall_x``: the cart's position at that step (the rails end at |x| ~ 1.87: a fall at the
   rail's end is the cart hitting it);
 * ``spells``: per episode, how many separate runs of steps the pole spends past the lean,
-  ``recovered``: how many of them are followed by at least ``--held`` steps up (a pole
-  caught, not one spinning through the top; a teacher that flips the pole through a full
-  turn to bring the cart back to the centre catches it), and
-  ``longest_spell``: the longest, in steps;
+  ``longest_spell``: the longest, in steps (a pole caught after a full turn spends ~24 past
+  25°, one left to spin ~29 per turn), and ``upright_after_fall``: the share of steps within
+  10° of upright after the first fall, over the episodes that fall (a pole caught and held
+  stays up; one spinning freely spends ~0.4 of its time near the top);
 * ``at_rail_end``: the share of all steps with |x| > 1.5, ``upright``: with the pole within
   10° of upright;
 * with ``--against NAME``: the episode-paired difference of fall steps (mean ± standard error)
   and how many episodes fall later, the same pairing as ``twist-eval --paired-with``.
 
-``python experiments/balance_time.py EVAL_DIR [--against oracle] [--lean 25] [--held 20]``
+``python experiments/balance_time.py EVAL_DIR [--against oracle] [--lean 25]``
 """
 
 from __future__ import annotations
@@ -56,16 +56,6 @@ def spells(states: np.ndarray, lean_degrees: float) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
-def caught(runs: list[tuple[int, int]], length: int, held: int) -> int:
-    """How many of the ``runs`` past the lean are followed by at least ``held`` steps up (a
-    pole caught, not one spinning through the top)."""
-    if not runs:
-        return 0
-    starts = [start for start, _ in runs[1:]] + [length]
-    return sum(1 for (_, end), following in zip(runs, starts, strict=True)
-               if following - end >= held)
-
-
 def read(folder: Path) -> dict[str, dict[tuple[int, int], np.ndarray]]:
     """{agent: {(seed, episode): states [T+1, S]}} from an evaluation folder."""
     found: dict[str, dict[tuple[int, int], np.ndarray]] = {}
@@ -85,8 +75,6 @@ def main() -> None:
     parser.add_argument("eval_dir", type=Path)
     parser.add_argument("--against", help="agent to pair every other agent's fall steps with")
     parser.add_argument("--lean", type=float, default=25.0, help="degrees that count as fallen")
-    parser.add_argument("--held", type=int, default=20,
-                        help="steps up after a fall that count as caught")
     args = parser.parse_args()
     agents = read(args.eval_dir)
     falls = {name: {key: fall_step(s, args.lean) for key, s in episodes.items()}
@@ -103,8 +91,9 @@ def main() -> None:
                 "upright": round(float((steps[:, COS] >= np.cos(np.radians(10))).mean()), 3)}
         runs = [spells(episodes[k], args.lean) for k in keys]
         line["spells"] = [len(r) for r in runs]
-        line["recovered"] = [caught(r, len(episodes[k]), args.held)
-                             for r, k in zip(runs, keys, strict=True)]
+        after = [episodes[k][falls[name][k]:, COS] for k in keys if falls[name][k] < len(episodes[k])]
+        line["upright_after_fall"] = round(float(np.mean(
+            [(a >= np.cos(np.radians(10))).mean() for a in after])), 3) if after else None
         line["longest_spell"] = [max((end - start for start, end in r), default=0) for r in runs]
         if args.against is not None and name != args.against and args.against in falls:
             shared = [k for k in keys if k in falls[args.against]]
