@@ -1,8 +1,9 @@
 """How long does each agent keep the pole up, and where is the cart when it falls?
 
 A cartpole-balance return mixes two phases: the steps while the pole is up, and whatever
-follows its fall (the task never ends the episode, and the `quick` teachers never learned to
-swing it back up). An agent that holds the pole as long as its teacher, then does worse with
+follows its fall (the task never ends the episode: a fallen pole is caught again after a
+whole turn, as some `quick` teachers do on purpose to bring the cart back, or left to spin).
+An agent that holds the pole as long as its teacher, then does worse with
 a fallen pole, acts as well as its teacher where it matters and still scores less; returns
 alone cannot tell the two apart. This script reads the trajectories ``twist-eval
 --save-trajectories`` wrote and prints, per agent, one JSON line:

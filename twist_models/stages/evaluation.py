@@ -444,7 +444,7 @@ def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
     done = [False] * n
     images: list[np.ndarray | None] = [None] * n
     visited: list[list[np.ndarray]] = [[s.state] for s in steps]
-    acted: list[list[np.ndarray]] = [[] for _ in steps]
+    acted: list[list[tuple[np.ndarray, float]]] = [[] for _ in steps]
     while True:
         for slot in range(n):
             if done[slot]:
