@@ -60,7 +60,6 @@ from twist_models.teacher import load_teacher
 TestSet = tuple[torch.Tensor, torch.Tensor]
 
 
-
 def held_out_scores(encoder: nn.Module, head: nn.Module, tests: dict[str, TestSet],
                     scale: torch.Tensor, sensitivity: dict[str, torch.Tensor] | None = None
                     ) -> dict[str, list[float] | float]:

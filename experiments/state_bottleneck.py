@@ -86,14 +86,12 @@ def frames_before(data: MatchingDataset, steps: np.ndarray, frames: int,
                   rng: np.random.Generator) -> np.ndarray:
     """Each of ``steps`` and the ``frames - 1`` before it in its episode (its first step
     repeated before the start), one view per step: uint8 [N, frames, H, W, 3]."""
-    starts = np.repeat(np.cumsum(data.episode_lengths) - data.episode_lengths,
-                       data.episode_lengths)
-    back = np.maximum(steps[:, None] - np.arange(frames), starts[steps][:, None])
+    starts = data.episode_starts[np.searchsorted(data.episode_starts, steps, "right") - 1]
+    back = np.maximum(steps[:, None] - np.arange(frames), starts[:, None])
     views = np.repeat(rng.integers(0, data.spec.views, steps.size), frames)
     out = np.empty((back.size, *data.spec.image_shape), np.uint8)
     data.read_frames(back.reshape(-1), views, out)
     return out.reshape(steps.size, frames, *data.spec.image_shape)
-
 
 
 def train(args: argparse.Namespace) -> None:
