@@ -21,7 +21,7 @@ from twist_models.actor_critic import Actor
 from twist_models.checkpoint import Checkpoint, read_checkpoint, restore, save_checkpoint
 from twist_models.config import AgentConfig, from_json
 from twist_models.rssm import State
-from twist_models.student import Student, step_frames
+from twist_models.student import Student
 from twist_models.teacher import Teacher
 
 
@@ -35,7 +35,8 @@ class AgentState:
     """The previous action [N, A]."""
     frames: torch.Tensor | None = None
     """Embeddings of the previous ``frames - 1`` images, most recent first
-    [N, frames - 1, E]; None before the episode's first image."""
+    [N, frames - 1, E], or a read-out student's last read-out [N, R]; None before the
+    episode's first image."""
 
 
 class Agent(nn.Module):
@@ -86,8 +87,7 @@ class Agent(nn.Module):
         if state is None:
             state = AgentState(rssm.initial(n, self.device),
                                torch.zeros(n, self.config.student.action_dim, device=self.device))
-        embed, history = step_frames(self.student.encoder(image), state.frames,
-                                     self.config.student.frames)
+        embed, history = self.student.step_embed(image, state.frames)
         latent = rssm.post_step(state.latent, state.action, embed, first, read=posterior,
                                 uniform=uniform)
         dist = self.actor(rssm.feature(latent))

@@ -285,6 +285,55 @@ class TeacherConfig(DreamerConfig):
             raise ConfigError(f"explore_noise must be >= 0, got {self.explore_noise}")
 
 
+#: How a read-out student derives a velocity: from one read component's difference between
+#: successive frames (``linear``) or from a (cos, sin) pair's angle difference (``angle``).
+VELOCITY_SOURCES = ("linear", "angle")
+
+
+@dataclass(frozen=True)
+class ReadOutConfig:
+    """A student that reads the teacher's state from images (the ``readout`` recipe): a CNN
+    reads the components one frame shows, each velocity is a gain times the difference of
+    successive read-outs, and the teacher's own state encoder, filter and actor take it from
+    there (:mod:`twist_models.readout` pairs the components on D)."""
+
+    state_dim: int = 1
+    """Length of the teacher's state vector."""
+    read: tuple[int, ...] = (0,)
+    """State components the CNN reads from a single frame (what one image shows)."""
+    angles: tuple[tuple[int, int], ...] = ()
+    """(cos, sin) component pairs of ``read`` that lie on the unit circle: read-outs are
+    projected onto it, and their angle is what a velocity differentiates."""
+    velocities: tuple[tuple[int, ...], ...] = ()
+    """One entry per derived component: (its index, a read index) for a linear difference, or
+    (its index, cos index, sin index) for an angle difference."""
+    gains: tuple[float, ...] = ()
+    """Per entry of ``velocities``: the least-squares factor from the difference to the
+    velocity on D (1 / the time between frames, up to the integrator's lag)."""
+    encoder: MLPConfig = field(default_factory=MLPConfig)
+    """The teacher's state encoder (copied with its weights and kept fixed)."""
+
+    def __post_init__(self) -> None:
+        require_positive(self, "state_dim")
+        derived = [v[0] for v in self.velocities]
+        every = [*self.read, *derived]
+        if sorted(every) != list(range(self.state_dim)):
+            raise ConfigError(f"read {list(self.read)} and derived {derived} components must "
+                              f"cover the state's {self.state_dim} components exactly once")
+        for pair in self.angles:
+            if len(pair) != 2 or not set(pair) <= set(self.read):
+                raise ConfigError(f"an angle pair must be two read components, got {pair}")
+        for velocity in self.velocities:
+            sources = velocity[1:]
+            if len(sources) not in (1, 2) or not set(sources) <= set(self.read) or (
+                    len(sources) == 2 and tuple(sources) not in self.angles):
+                raise ConfigError(f"velocity {velocity[0]} must come from one read component "
+                                  f"or one angle pair, got sources {list(sources)}")
+        if len(self.gains) != len(self.velocities):
+            raise ConfigError(f"gains needs one factor per velocity ({len(self.velocities)}), "
+                              f"got {len(self.gains)}")
+
+
 @dataclass(frozen=True)
 class StudentConfig:
     """The vision student: a CNN encoder and an RSSM of the teacher's sizes. It has no decoder
@@ -303,10 +352,16 @@ class StudentConfig:
     """Length of the privileged state a linear head reads from the posterior's image input,
     a training target of the ``dense`` recipe (0: no head, the paper's student; acting never
     uses it)."""
+    readout: ReadOutConfig | None = None
+    """Read the teacher's state from each image and let the teacher's state encoder embed it
+    (the ``readout`` recipe; None: the CNN's embedding is the posterior's input, the paper)."""
 
     def __post_init__(self) -> None:
         require_positive(self, "action_dim", "frames")
         require_non_negative(self, "state_dim")
+        if self.readout is not None and self.frames != 1:
+            raise ConfigError(f"a read-out student reads one frame per step (its velocities "
+                              f"are differences of successive read-outs), got frames={self.frames}")
 
 
 @dataclass(frozen=True)
@@ -365,18 +420,19 @@ def image_dreamer_preset(name: str, state_dim: int, action_dim: int, image_size:
 
 
 def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
-                   frames: int = 1, norm: str = "none", state_head: bool = False
-                   ) -> StudentConfig:
+                   frames: int = 1, norm: str = "none", state_head: bool = False,
+                   readout: ReadOutConfig | None = None) -> StudentConfig:
     """The student of size preset ``name`` (its CNN, normalised by ``norm``) for ``teacher``,
     whose RSSM it copies, reading ``frames`` images per step, with a read-out head of the
-    teacher's state if ``state_head``."""
+    teacher's state if ``state_head``, reading the state as ``readout`` pairs it if given."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
     cnn = dataclasses.replace(PRESETS[name].get("cnn", CNNConfig()), image_size=image_size,
                               norm=norm)
     return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,
                          cnn=cnn, frames=frames,
-                         state_dim=teacher.world_model.state_dim if state_head else 0)
+                         state_dim=teacher.world_model.state_dim if state_head else 0,
+                         readout=readout)
 
 
 def to_json(config: Any) -> dict[str, Any]:
@@ -405,9 +461,14 @@ def from_json(cls: type[T], data: Mapping[str, Any]) -> T:
         if kind is not None and isinstance(value, Mapping):
             value = from_json(kind, value)
         elif isinstance(value, list):
-            value = tuple(value)
+            value = _as_tuples(value)
         kwargs[name] = value
     return cls(**kwargs)
+
+
+def _as_tuples(value: Any) -> Any:
+    """JSON lists back to the (nested) tuples a frozen config holds."""
+    return tuple(_as_tuples(v) for v in value) if isinstance(value, list) else value
 
 
 def nested_config_type(hint: Any) -> type | None:

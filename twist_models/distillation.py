@@ -119,6 +119,11 @@ class DistilConfig:
     state_weight: float = 0.0
     """Weight of the per-frame state read-out term, each state component weighted by the
     teacher actor's sensitivity to it (adds a linear state head to the student; 0: off)."""
+    readout: bool = False
+    """The student reads the teacher's state from each image and hands it to the teacher's
+    own state encoder and filter, copied and fixed (:mod:`twist_models.readout`); its first
+    stage regresses the state one frame shows, then Eq. 3/4 train the CNN through the fixed
+    filter (not in the paper)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -169,15 +174,27 @@ class DistilConfig:
             raise ConfigError(f"unknown student preset {self.student!r}; valid presets are: "
                               f"{', '.join(PRESETS)}")
         require_choice(self, "recipe", tuple(RECIPES))
-        require_positive(self, "steps", "batch_size", "length", "horizon", "frames", "lr",
+        require_positive(self, "batch_size", "length", "horizon", "frames", "lr",
                          "heldout_windows", "eval_every", "checkpoint_every", "snapshot_every",
                          "frame_batch", "frame_eval_every")
         require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
                              "post_weight", "imagined_weight", "action_weight", "workers",
-                             "rare_states", "frame_post_weight", "state_weight", "frame_steps")
+                             "rare_states", "frame_post_weight", "state_weight", "frame_steps",
+                             "steps")
+        if self.steps == 0 and self.frame_steps == 0:
+            raise ConfigError("steps must be > 0 unless a first stage trains (frame_steps), "
+                              "got steps=0 and frame_steps=0")
         if self.frame_steps and not self.frame_terms:
             raise ConfigError(f"frame_steps={self.frame_steps} trains on the per-frame terms "
-                              "alone, but frame_post_weight and state_weight are both 0")
+                              "alone, but frame_post_weight and state_weight are both 0 and "
+                              "the student does not read the state (readout)")
+        if self.readout and (self.frames != 1 or self.state_weight or self.frame_post_weight
+                             or not self.copy_dynamics):
+            raise ConfigError("a read-out student reads one frame per step into the teacher's "
+                              "copied filter and learns from its read-out alone in the first "
+                              f"stage; got frames={self.frames}, state_weight="
+                              f"{self.state_weight}, frame_post_weight={self.frame_post_weight}, "
+                              f"copy_dynamics={self.copy_dynamics}")
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
@@ -194,8 +211,9 @@ class DistilConfig:
 
     @property
     def frame_terms(self) -> bool:
-        """Whether the per-frame terms train (and the teacher's targets over D are needed)."""
-        return self.frame_post_weight > 0 or self.state_weight > 0
+        """Whether per-frame terms train: the ``dense`` ones (which need the teacher's
+        targets over D) or a read-out student's."""
+        return self.frame_post_weight > 0 or self.state_weight > 0 or self.readout
 
     def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
         return SamplerConfig(length=self.length, batch_size=batch_size or self.batch_size,
@@ -209,17 +227,25 @@ class DistilConfig:
 #: the same, plus the per-frame targets of :mod:`twist_models.frame_targets`, first alone on
 #: single frames for the size preset's ``FRAME_STEPS`` updates, then beside Eq. 3/4; windows
 #: that start from the teacher's latent before them; sampling draws of its own (not the
-#: teacher's), as when it acts; and a layer-normalised CNN (docs/design.md, "Recipes", and
-#: docs/results.md for what each part was measured to give).
+#: teacher's), as when it acts; and a layer-normalised CNN. ``readout``: a student that reads
+#: the teacher's state from each image into the teacher's own fixed filter
+#: (:mod:`twist_models.readout`), its read-out first trained alone on single frames, then a few
+#: Eq. 3/4 updates through the filter (docs/design.md, "Recipes", and docs/results.md for
+#: what each part was measured to give).
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {},
     "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0,
               "precision": "auto", "window_start": "teacher", "shared_draws": False},
+    "readout": {"readout": True, "encoder_norm": "layer", "precision": "auto"},
 }
-#: Updates of the ``dense`` recipe's single-frame stage at each size preset. One update of 64
-#: frames costs ~1/20 of a ``quick`` update on windows (36 against ~1.5 per second on the
-#: 2-core CPU, bfloat16), and the held-out per-frame agreement still improved at 3,000.
-FRAME_STEPS = {"paper": 20_000, "quick": 10_000, "tiny": 4}
+#: Updates of each recipe's single-frame stage at each size preset. One update of 64 frames
+#: costs ~1/20 of a ``quick`` update on windows (36 against ~1.5 per second on the 2-core CPU,
+#: bfloat16); the ``dense`` recipe's held-out per-frame agreement still improved at 3,000, the
+#: read-out's near-upright lean at 15,000 (docs/experiments.md).
+FRAME_STEPS = {"dense": {"paper": 20_000, "quick": 10_000, "tiny": 4},
+               "readout": {"paper": 30_000, "quick": 15_000, "tiny": 4}}
+#: Updates on windows (Eq. 3/4 through the teacher's fixed filter) after the read-out stage.
+READOUT_STEPS = {"paper": 5_000, "quick": 200, "tiny": 6}
 
 DISTIL_PRESETS: dict[str, DistilConfig] = {
     # The paper's batch, window and horizon; Eq. 4 from every posterior state.
@@ -246,8 +272,10 @@ def distil_preset(name: str, recipe: str = "paper", **overrides: Any) -> DistilC
     if recipe not in RECIPES:
         raise ConfigError(f"unknown recipe {recipe!r}; valid recipes are: {', '.join(RECIPES)}")
     settings = dict(RECIPES[recipe], recipe=recipe)
-    if recipe == "dense":
-        settings["frame_steps"] = FRAME_STEPS[name]
+    if recipe in FRAME_STEPS:
+        settings["frame_steps"] = FRAME_STEPS[recipe][name]
+    if recipe == "readout":
+        settings["steps"] = READOUT_STEPS[name]
     settings.update({k: v for k, v in overrides.items() if v is not None})
     return replace_fields(DISTIL_PRESETS[name], settings)
 
@@ -409,6 +437,9 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
         frames = frame_agreement(student, teacher, embed, t_post["deter"], batch["state"])
         frame_kl = frame_posterior_loss(student.rssm.posterior_logits(t_post["deter"], embed),
                                         t_post["logits"])
+        if student.readout is not None:
+            frames["read_error"] = student.readout.error(student.encoder(batch["image"]),
+                                                         batch["state"])
     deter = student.config.rssm.deter
     h_mse = float(terms["h"]) / deter
     # An h-MSE means little without the scale of the teacher's h (on cartpole its variance is

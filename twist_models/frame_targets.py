@@ -63,8 +63,9 @@ def actor_sensitivity(teacher: Teacher, deter: torch.Tensor, state: torch.Tensor
 
 
 @dataclass
-class TeacherTargets:
-    """The teacher's filter over D's training episodes, one row per step."""
+class FrameRows:
+    """Steps of D's training episodes, one row per step, with their states: what a
+    per-frame stage draws from."""
 
     steps: np.ndarray
     """int64 [N]: each row's global step index in D."""
@@ -72,6 +73,26 @@ class TeacherTargets:
     """int64 [N]: global step index of each row's episode start."""
     state: torch.Tensor
     """float32 [N, S]: the privileged state."""
+
+    def __len__(self) -> int:
+        return int(self.steps.size)
+
+    @classmethod
+    def of(cls, data: MatchingDataset, episodes: np.ndarray,
+           device: torch.device | str = "cpu") -> FrameRows:
+        """Every step of ``episodes`` (global indices) of ``data``, in order."""
+        starts = data.episode_starts[episodes]
+        lengths = data.episode_ends[episodes] - starts
+        rows = np.concatenate([np.arange(s, s + n) for s, n in zip(starts, lengths, strict=True)])
+        return cls(steps=rows.astype(np.int64),
+                   episode_start=np.repeat(starts, lengths).astype(np.int64),
+                   state=torch.as_tensor(data.column("state")[rows], device=device))
+
+
+@dataclass
+class TeacherTargets(FrameRows):
+    """The teacher's filter over D's training episodes, one row per step."""
+
     deter: torch.Tensor
     """float32 [N, D]: the teacher's h_t, filtered from its episode's start."""
     sensitivity: torch.Tensor
@@ -79,9 +100,6 @@ class TeacherTargets:
     scale: float
     """The mean raw sensitivity over rows and components: the weights above (and those of
     any later batch) are divided by it, so they average 1 over D."""
-
-    def __len__(self) -> int:
-        return int(self.steps.size)
 
 
 @torch.no_grad()
@@ -98,7 +116,7 @@ def teacher_targets(teacher: Teacher, data: MatchingDataset, episodes: np.ndarra
     lengths = data.episode_ends[episodes] - starts
     generator = torch.Generator().manual_seed(seed)
     deters: list[torch.Tensor] = []
-    rows = np.concatenate([np.arange(s, s + n) for s, n in zip(starts, lengths, strict=True)])
+    table = FrameRows.of(data, episodes, device)
     for lo in range(0, len(episodes), chunk):
         first, count = starts[lo:lo + chunk], lengths[lo:lo + chunk]
         longest = int(count.max())
@@ -111,16 +129,14 @@ def teacher_targets(teacher: Teacher, data: MatchingDataset, episodes: np.ndarra
         post, _ = wm.rssm.observe(wm.embed(state), torch.as_tensor(actions[index], device=device),
                                   is_first.to(device), uniform=uniform, read=read)
         deters += [post["deter"][i, :n] for i, n in enumerate(count.tolist())]
-    deter = torch.cat(deters)
-    state = torch.as_tensor(states[rows], device=device)
+    deter, state = torch.cat(deters), table.state
     raw = torch.cat([actor_sensitivity(teacher, deter[i:i + 4096], state[i:i + 4096])
-                     for i in range(0, len(rows), 4096)])
+                     for i in range(0, len(table), 4096)])
     scale = float(raw.mean().clamp_min(1e-12))
     log.info("teacher targets for %d steps; mean actor sensitivity per state component: %s",
-             len(rows), [round(float(w), 3) for w in raw.mean(0) / scale])
-    return TeacherTargets(steps=rows.astype(np.int64),
-                          episode_start=np.repeat(starts, lengths).astype(np.int64),
-                          state=state, deter=deter, sensitivity=raw / scale, scale=scale)
+             len(table), [round(float(w), 3) for w in raw.mean(0) / scale])
+    return TeacherTargets(steps=table.steps, episode_start=table.episode_start, state=state,
+                          deter=deter, sensitivity=raw / scale, scale=scale)
 
 
 @torch.no_grad()
@@ -151,9 +167,9 @@ class FrameBatches:
     step of the episode repeated before its start, as :func:`~twist_models.student.stack_frames`).
 
     A batch: ``image`` uint8 [B, frames, H, W, 3] (most recent first), ``state`` [B, S],
-    ``deter`` [B, D], ``sensitivity`` [B, S]."""
+    and from teacher targets ``deter`` [B, D] and ``sensitivity`` [B, S]."""
 
-    def __init__(self, data: MatchingDataset, targets: TeacherTargets, batch_size: int,
+    def __init__(self, data: MatchingDataset, targets: FrameRows, batch_size: int,
                  frames: int = 1, view: int | None = None, seed: int = 0) -> None:
         self.data, self.targets, self.batch_size = data, targets, batch_size
         self.frames, self.view = frames, view
@@ -170,8 +186,10 @@ class FrameBatches:
         self.data.read_frames(steps.reshape(-1), np.repeat(views, self.frames), self._images)
         image = torch.from_numpy(self._images.reshape(b, self.frames, *self._images.shape[1:]))
         index = torch.as_tensor(rows)
-        return {"image": image.clone(), "state": t.state[index], "deter": t.deter[index],
-                "sensitivity": t.sensitivity[index]}
+        batch = {"image": image.clone(), "state": t.state[index]}
+        if isinstance(t, TeacherTargets):
+            batch.update(deter=t.deter[index], sensitivity=t.sensitivity[index])
+        return batch
 
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
         while True:

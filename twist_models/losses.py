@@ -153,3 +153,12 @@ def weighted_state_loss(prediction: torch.Tensor, state: torch.Tensor, weight: t
     the leading dims). With w the actor's squared sensitivity to each state component this is
     the first-order squared action error each component's read-out error alone would cause."""
     return (weight.detach() * (prediction - state.detach()) ** 2).sum(-1).mean()
+
+
+def readout_loss(standardised: torch.Tensor, state: torch.Tensor, mean: torch.Tensor,
+                 scale: torch.Tensor, read: tuple[int, ...]) -> torch.Tensor:
+    """Huber loss (delta 1) of the head's standardised read-out against the true read
+    components: standardised [..., R], state [..., S], mean and scale [R] -> []. Huber, so
+    that a fallen pole, many robust spreads away, cannot outweigh the lean near upright."""
+    target = (state[..., list(read)] - mean) / scale
+    return F.huber_loss(standardised.float(), target)

@@ -10,6 +10,7 @@ from torch import nn
 from twist_data.errors import ConfigError
 from twist_models.config import StudentConfig
 from twist_models.networks import ImageEncoder
+from twist_models.readout import StateReadOut
 from twist_models.rssm import RSSM, State
 
 #: The RSSM's transition modules (the GRU's input layer, the GRU, the prior head): what the
@@ -18,22 +19,51 @@ TRANSITION = ("img_in", "gru", "img_out")
 
 
 class Student(nn.Module):
-    """Image encoder + RSSM with the teacher's sizes."""
+    """Image encoder + RSSM with the teacher's sizes; with ``config.readout`` the encoder's
+    features are read as the teacher's state, which the teacher's state encoder embeds
+    (:mod:`twist_models.readout`)."""
 
     def __init__(self, config: StudentConfig) -> None:
         super().__init__()
         self.config = config
         self.encoder = ImageEncoder(config.cnn)
-        embed_dim = self.encoder.out_dim * config.frames
+        self.readout = (StateReadOut(config.readout, self.encoder.out_dim)
+                        if config.readout is not None else None)
+        embed_dim = (self.readout.out_dim if self.readout is not None
+                     else self.encoder.out_dim * config.frames)
         self.rssm = RSSM(config.rssm, config.action_dim, embed_dim)
+        if self.readout is not None:  # the teacher's filter (copy_teacher_filter), kept fixed
+            self.readout.encoder.requires_grad_(False)
+            self.rssm.requires_grad_(False)
         # A training target only (the ``dense`` recipe): linear, so that what it reads must be
         # plainly present in the embedding the posterior head reads.
         self.state_head = nn.Linear(embed_dim, config.state_dim) if config.state_dim else None
 
     def embed(self, image: torch.Tensor, is_first: torch.Tensor) -> torch.Tensor:
         """What the posterior reads along windows: image uint8 [B, T, H, W, 3], is_first
-        [B, T] -> [B, T, frames * E] (see :func:`stack_frames`)."""
+        [B, T] -> [B, T, frames * E] (see :func:`stack_frames`), or for a read-out student
+        the teacher's embedding of the state read along them [B, T, E']."""
+        if self.readout is not None:
+            positions = self.readout.positions(self.encoder(image))
+            return self._embed_state(self.readout.window_state(positions, is_first))
         return stack_frames(self.encoder(image), is_first, self.config.frames)
+
+    def step_embed(self, image: torch.Tensor, history: torch.Tensor | None
+                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`embed` one step at a time: image uint8 [N, H, W, 3] and the history the
+        previous step returned (None at an episode's first step) -> (posterior input, next
+        history): the embeddings of earlier frames (:func:`step_frames`), or a read-out
+        student's last read-out [N, R]."""
+        if self.readout is not None:
+            positions = self.readout.positions(self.encoder(image))
+            previous = positions if history is None else history
+            return self._embed_state(self.readout.state(positions, previous)), positions
+        return step_frames(self.encoder(image), history, self.config.frames)
+
+    def _embed_state(self, state: torch.Tensor) -> torch.Tensor:
+        # In float32 whatever autocast the CNN ran under: this is the teacher's encoder.
+        with torch.autocast(state.device.type, enabled=False):
+            return self.readout.encoder(state.float())
 
     def observe(self, image: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
                 uniform: torch.Tensor | None = None, read: str = "sample"
@@ -102,6 +132,22 @@ def copy_teacher_dynamics(student: Student, teacher_rssm: RSSM) -> None:
     student_in.weight[:, :deter].copy_(teacher_in.weight[:, :deter])
     student_in.bias.copy_(teacher_in.bias)
     student.rssm.obs_out[2].load_state_dict(teacher_rssm.obs_out[2].state_dict())
+
+
+@torch.no_grad()
+def copy_teacher_filter(student: Student, teacher: nn.Module) -> None:
+    """Give a read-out student the teacher's whole filter: its state encoder and its RSSM
+    (posterior head included, since the student's posterior reads the same embedding), which
+    the student keeps fixed, so that distillation trains only the CNN and its read-out head.
+    ``teacher`` is the teacher's world model."""
+    if student.readout is None:
+        raise ConfigError("only a read-out student (StudentConfig.readout) reads the teacher's "
+                          "state embedding")
+    if student.rssm.config != teacher.rssm.config:
+        raise ConfigError(f"the student's RSSM sizes {student.rssm.config} differ from the "
+                          f"teacher's {teacher.rssm.config}; its filter cannot be copied")
+    student.readout.encoder.load_state_dict(teacher.encoder.state_dict())
+    student.rssm.load_state_dict(teacher.rssm.state_dict())
 
 
 def freeze_dynamics(student: Student) -> None:

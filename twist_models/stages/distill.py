@@ -52,6 +52,7 @@ from twist_models.checkpoint import (
     save_checkpoint,
 )
 from twist_models.config import (
+    ReadOutConfig,
     StudentConfig,
     from_json,
     student_preset,
@@ -69,17 +70,24 @@ from twist_models.distillation import (
 )
 from twist_models.frame_targets import (
     FrameBatches,
+    FrameRows,
     TeacherTargets,
     frame_terms,
     teacher_latent_before,
     teacher_targets,
 )
+from twist_models.readout import pair_velocities, robust_standardisation
 from twist_models.stages.runlog import (
     Board,
     RunFolder,
     append_csv,
 )
-from twist_models.student import Student, copy_teacher_dynamics, freeze_dynamics
+from twist_models.student import (
+    Student,
+    copy_teacher_dynamics,
+    copy_teacher_filter,
+    freeze_dynamics,
+)
 from twist_models.teacher import Teacher, find_teacher, load_teacher
 
 log = logging.getLogger(__name__)
@@ -89,9 +97,10 @@ TERMS = ("h", "prior_kl", "post_kl", "imagined_h", "imagined_prior_kl", "action"
 METRIC_COLUMNS = ("updates", "wall_s", "updates_per_s", "data_wait_share", "loss", *TERMS,
                   "grad_norm")
 HELDOUT_COLUMNS = ("updates", "frame_updates", "h_mse", "h_explained", "post_kl", "prior_kl",
-                   "imagined_h_mse", "frame_post_kl", "frame_action_rmse", "frame_action_corr")
+                   "imagined_h_mse", "frame_post_kl", "frame_action_rmse", "frame_action_corr",
+                   "read_error")
 FRAME_METRIC_COLUMNS = ("frame_updates", "wall_s", "updates_per_s", "loss", "frame_post_kl",
-                        "state", "grad_norm")
+                        "state", "readout", "grad_norm")
 FINAL_STUDENT = "student.pt"
 AGENT = "agent.pt"
 
@@ -147,13 +156,16 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     data = _open_inputs(dataset_path, config)
     teacher_path = Path(teacher) if teacher is not None else find_teacher(dataset_path)
     teacher_model, _ = load_teacher(teacher_path, data.spec.state_dim, data.spec.action_dim)
+    rows = _training_rows(data, config) if config.readout else None
     student_config = student_preset(config.student, teacher_model.config, data.spec.image_height,
                                     config.frames, config.encoder_norm,
-                                    state_head=config.state_weight > 0)
+                                    state_head=config.state_weight > 0,
+                                    readout=_pair_readout(data, rows, teacher_model)
+                                    if rows is not None else None)
     _check_output(out, config, student_config, resume)
     rank, world = _rank_and_world()
     run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,
-               torch_device, rank, world)
+               torch_device, rank, world, rows)
     try:
         return run.loop(on_progress)
     finally:
@@ -181,6 +193,22 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
                           f"({type(exc).__name__}: {exc}); the student learns from images"
                           ) from None
     return data
+
+
+def _training_rows(data: MatchingDataset, config: DistilConfig) -> FrameRows:
+    return FrameRows.of(data, np.flatnonzero(~heldout_episodes(data.n_episodes,
+                                                               config.holdout_every)))
+
+
+def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher) -> ReadOutConfig:
+    """What a read-out student reads and derives, measured on D's training steps."""
+    wm = teacher.config.world_model
+    if wm.state_hidden:
+        raise DistilError(f"the readout recipe hands the teacher the whole state it read; this "
+                          f"teacher never reads components {list(wm.state_hidden)} "
+                          "(state_hidden)")
+    return pair_velocities(rows.state.numpy(), rows.steps == rows.episode_start,
+                           data.spec.state_layout, wm.state_mlp, data.spec.task)
 
 
 def _run_folder(out: Path) -> RunFolder:
@@ -212,7 +240,7 @@ class _Run:
     def __init__(self, dataset_path: Path, data: MatchingDataset, out: Path,
                  config: DistilConfig, teacher: Teacher, teacher_path: Path,
                  student_config: StudentConfig, device: torch.device, rank: int,
-                 world: int) -> None:
+                 world: int, rows: FrameRows | None = None) -> None:
         self.dataset_path, self.data, self.out, self.config = dataset_path, data, out, config
         self.teacher_path, self.device, self.rank, self.world = teacher_path, device, rank, world
         self.teacher = teacher.to_device(device).eval().requires_grad_(False)
@@ -233,7 +261,11 @@ class _Run:
             log.info("resumed the student at update %d from %s", self.updates, latest)
         else:
             self.updates, self.frame_updates, self.seconds, self.heldout_first = 0, 0, 0.0, {}
-            if config.copy_dynamics:
+            if self.student.readout is not None:
+                copy_teacher_filter(self.student, self.teacher.world_model)
+                self.student.readout.set_standardisation(*robust_standardisation(
+                    rows.state.numpy(), student_config.readout))
+            elif config.copy_dynamics:
                 copy_teacher_dynamics(self.student, self.teacher.world_model.rssm)
             # Ranks start from one student but draw their own latent samples and noise.
             torch.manual_seed(derived_seed(config.seed, 5, rank))
@@ -241,8 +273,12 @@ class _Run:
             freeze_dynamics(self.student)
         self.student.to(device)
         move_optimiser_state(self.optimiser, device)
+        dense = config.frame_post_weight > 0 or config.state_weight > 0
         self.targets = (self._teacher_targets()
-                        if config.frame_terms or config.window_start == "teacher" else None)
+                        if dense or config.window_start == "teacher" else None)
+        # What the first stage draws frames from: the teacher's targets, or for a read-out
+        # student the states alone.
+        self.rows = self.targets if self.targets is not None else rows
         self.objective: nn.Module = Distillation(
             self.student, self.teacher, config,
             self.targets.scale if self.targets is not None else 1.0)
@@ -408,7 +444,7 @@ class _Run:
         """The first stage: the per-frame terms alone on single training frames, for
         ``frame_steps`` updates; resumable at its evaluation points."""
         c = self.config
-        batches = FrameBatches(self.data, self.targets, c.frame_batch, c.frames, c.view,
+        batches = FrameBatches(self.data, self.rows, c.frame_batch, c.frames, c.view,
                                seed=derived_seed(c.seed, 7, self.frame_updates, self.rank))
         params = [p for p in self.student.parameters() if p.requires_grad]
         sums: dict[str, float] = {}
@@ -420,9 +456,13 @@ class _Run:
             batch = {k: v.to(self.device, non_blocking=True) for k, v in batches.batch().items()}
             with encoder_autocast(c.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
-            terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
-                                batch["state"], batch["sensitivity"])
-            loss = frame_loss(terms, c)
+            if self.student.readout is not None:
+                terms = {"readout": self.student.readout.loss(embed, batch["state"])}
+                loss = terms["readout"]
+            else:
+                terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
+                                    batch["state"], batch["sensitivity"])
+                loss = frame_loss(terms, c)
             self.optimiser.zero_grad(set_to_none=True)
             loss.backward()
             if self.world > 1:  # this stage runs outside DistributedDataParallel

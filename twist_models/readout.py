@@ -1,0 +1,193 @@
+"""The read-out student's perception: the teacher's state read from images (not in the paper).
+
+The teacher's filter, given the exact state, is what the student tries to imitate from
+images. This module lets the student hand that filter a state instead of an image embedding:
+
+* a linear head on the CNN reads the components a single frame shows (positions, and the
+  (cos, sin) of angles), trained per frame against D's states, each standardised by its
+  *robust* spread over D (median and MAD), so that the near-upright lean a balancing teacher
+  keeps, which fills most of D, sets the scale rather than the rare fallen poles;
+* each velocity is a gain times the difference of two successive read-outs (an angle's
+  difference wrapped to (-pi, pi]); which component is the rate of which, and the gain, are
+  measured on D by :func:`pair_velocities`, so no task needs a hand-written table;
+* the teacher's own state encoder (copied, fixed) embeds the result for the teacher's
+  posterior.
+
+Why: the measured alternative, velocities learned from two stacked frames, was no better than
+predicting their mean, and the filter balanced on nothing but the velocity
+(docs/experiments.md, "A student that reads the state").
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import torch
+from torch import nn
+
+from twist_data.errors import ConfigError
+from twist_models.config import MLPConfig, ReadOutConfig
+from twist_models.losses import readout_loss
+from twist_models.networks import StateEncoder
+
+#: The least correlation between a velocity and the difference it is paired with.
+MIN_PAIRING = 0.95
+#: A (cos, sin) pair lies on the unit circle when c^2 + s^2 is this close to 1 on average.
+UNIT_CIRCLE = 1e-3
+#: MAD of a normal variable over its standard deviation: turns the MAD into a spread.
+MAD_TO_STD = 1.4826
+#: The least spread a read component is standardised by (a component D never varies).
+MIN_SCALE = 1e-3
+
+
+def unit_circle_pairs(states: np.ndarray, read: list[int]) -> list[tuple[int, int]]:
+    """Adjacent components of ``read`` whose squares sum to 1 on every row of ``states``
+    [N, S]: a (cos, sin) pair, as dm_control lays out an angle."""
+    pairs: list[tuple[int, int]] = []
+    for a, b in itertools.pairwise(read):
+        radius = float(np.abs(states[:, a] ** 2 + states[:, b] ** 2 - 1).mean())
+        if b == a + 1 and radius < UNIT_CIRCLE and (not pairs or a not in pairs[-1]):
+            pairs.append((a, b))
+    return pairs
+
+
+def wrapped(angle: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    """An angle difference wrapped to [-pi, pi)."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def pair_velocities(states: np.ndarray, is_first: np.ndarray,
+                    layout: tuple[tuple[str, int], ...], encoder: MLPConfig,
+                    task: str = "this task") -> ReadOutConfig:
+    """Measure on D which read component each velocity is the rate of.
+
+    ``states`` [N, S] and ``is_first`` [N] are consecutive steps of D's training episodes;
+    ``layout`` is D's state layout: components of blocks named ``velocity`` are derived, the
+    rest read. Each velocity is paired with the difference (over successive steps of one
+    episode) of a read component, or of a unit-circle pair's angle, that correlates best with
+    it, which must reach :data:`MIN_PAIRING`; its gain is the least-squares factor."""
+    if not layout:
+        raise ConfigError(f"the dataset of {task} declares no state layout; the readout recipe "
+                          "needs to know which state components are velocities")
+    names = [name for name, size in layout for _ in range(size)]
+    derived = [i for i, name in enumerate(names) if name == "velocity"]
+    read = [i for i, name in enumerate(names) if name != "velocity"]
+    if not derived or not read:
+        raise ConfigError(f"the state layout of {task} ({list(layout)}) needs both velocity and "
+                          "other blocks for the readout recipe")
+    states = states.astype(np.float64)
+    angles = unit_circle_pairs(states, read)
+    in_pairs = {i for pair in angles for i in pair}
+    step = ~is_first[1:]
+    change = np.diff(states, axis=0)[step]
+    candidates = {(i,): change[:, i] for i in read if i not in in_pairs}
+    for c, s in angles:
+        candidates[(c, s)] = wrapped(np.diff(np.arctan2(states[:, s], states[:, c]))[step])
+    velocities, gains = [], []
+    for v in derived:
+        target = states[1:, v][step]
+        scores = {k: abs(_correlation(d, target)) for k, d in candidates.items()}
+        best = max(scores, key=scores.__getitem__)
+        if scores[best] < MIN_PAIRING:
+            raise ConfigError(f"velocity component {v} of {task} is the rate of no component "
+                              f"one image shows (best correlation {scores[best]:.2f} with "
+                              f"component(s) {list(best)}, needs {MIN_PAIRING})")
+        difference = candidates[best]
+        gains.append(float(difference @ target / max(difference @ difference, 1e-12)))
+        velocities.append((v, *best))
+    return ReadOutConfig(state_dim=states.shape[1], read=tuple(read), angles=tuple(angles),
+                         velocities=tuple(velocities), gains=tuple(gains), encoder=encoder)
+
+
+def _correlation(a: np.ndarray, b: np.ndarray) -> float:
+    if a.std() == 0 or b.std() == 0:
+        return 0.0
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def robust_standardisation(states: np.ndarray, config: ReadOutConfig
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Centre (median) and spread (MAD x 1.4826) of each read component over ``states``
+    [N, S] -> (mean [R], scale [R]); both members of an angle pair take the larger spread,
+    so its direction is read evenly (near upright the cosine barely moves)."""
+    read = states[:, list(config.read)].astype(np.float64)
+    centre = np.median(read, 0)
+    scale = np.maximum(MAD_TO_STD * np.median(np.abs(read - centre), 0), MIN_SCALE)
+    position = {i: k for k, i in enumerate(config.read)}
+    for c, s in config.angles:
+        scale[[position[c], position[s]]] = scale[[position[c], position[s]]].max()
+    return centre.astype(np.float32), scale.astype(np.float32)
+
+
+class StateReadOut(nn.Module):
+    """CNN features -> the teacher's state -> the teacher's state embedding."""
+
+    def __init__(self, config: ReadOutConfig, features: int) -> None:
+        super().__init__()
+        self.config = config
+        self.head = nn.Linear(features, len(config.read))
+        self.register_buffer("mean", torch.zeros(len(config.read)))
+        self.register_buffer("scale", torch.ones(len(config.read)))
+        self.register_buffer("gains", torch.tensor(config.gains, dtype=torch.float32))
+        self.encoder = StateEncoder(config.state_dim, config.encoder)
+        self.out_dim = self.encoder.out_dim
+        position = {i: k for k, i in enumerate(config.read)}
+        self._angles = [(position[c], position[s]) for c, s in config.angles]
+        self._linear = [(k, position[v[1]]) for k, v in enumerate(config.velocities)
+                        if len(v) == 2]
+        self._angular = [(k, position[v[1]], position[v[2]])
+                         for k, v in enumerate(config.velocities) if len(v) == 3]
+
+    def loss(self, features: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """The first stage's term (:func:`~twist_models.losses.readout_loss`): CNN features
+        [..., F] and the true state [..., S] -> []."""
+        return readout_loss(self.head(features), state, self.mean, self.scale, self.config.read)
+
+    @torch.no_grad()
+    def error(self, features: torch.Tensor, state: torch.Tensor) -> float:
+        """RMS error of the read components in units of D's robust spread, angle pairs
+        projected onto the circle: features [..., F], state [..., S] -> a float."""
+        error = (self.positions(features) - state[..., list(self.config.read)]) / self.scale
+        return float(error.pow(2).mean().sqrt())
+
+    def positions(self, features: torch.Tensor) -> torch.Tensor:
+        """The read components in the state's units, angle pairs on the unit circle:
+        [..., F] -> [..., R]."""
+        read = self.head(features).float() * self.scale + self.mean
+        if not self._angles:
+            return read
+        parts = list(read.unbind(-1))
+        for c, s in self._angles:
+            norm = torch.sqrt(parts[c] ** 2 + parts[s] ** 2).clamp_min(1e-6)
+            parts[c], parts[s] = parts[c] / norm, parts[s] / norm
+        return torch.stack(parts, -1)
+
+    def state(self, positions: torch.Tensor, previous: torch.Tensor) -> torch.Tensor:
+        """The full state from this step's read-out and the last one's (the same tensor at an
+        episode's first step: velocities 0): [..., R], [..., R] -> [..., S]."""
+        rates = []
+        for k, i in self._linear:
+            rates.append((k, self.gains[k] * (positions[..., i] - previous[..., i])))
+        for k, c, s in self._angular:
+            turned = wrapped(torch.atan2(positions[..., s], positions[..., c])
+                             - torch.atan2(previous[..., s], previous[..., c]))
+            rates.append((k, self.gains[k] * turned))
+        state = positions.new_zeros(*positions.shape[:-1], self.config.state_dim)
+        state[..., list(self.config.read)] = positions
+        for k, rate in rates:
+            state[..., self.config.velocities[k][0]] = rate
+        return state
+
+    def window_state(self, positions: torch.Tensor, is_first: torch.Tensor) -> torch.Tensor:
+        """:meth:`state` along windows: positions [B, T, R], is_first [B, T] -> [B, T, S]. A
+        window's first step (and an episode's) has no step before it here: velocities 0."""
+        shifted = torch.cat([positions[:, :1], positions[:, :-1]], 1)
+        previous = torch.where(is_first.bool()[..., None], positions, shifted)
+        return self.state(positions, previous)
+
+    @torch.no_grad()
+    def set_standardisation(self, mean: np.ndarray, scale: np.ndarray) -> None:
+        self.mean.copy_(torch.as_tensor(mean))
+        self.scale.copy_(torch.as_tensor(scale))
+
