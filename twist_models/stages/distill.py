@@ -4,7 +4,8 @@ with the objective of :mod:`twist_models.distillation`.
 Never touches a simulator: it reads D and a frozen teacher checkpoint and writes a run folder
 ``<out>/``: ``config.json``, ``metrics.csv`` (training terms, updates/s, data-wait share),
 ``heldout.csv`` and its plot ``latent-agreement.png``, ``latest.pt`` (resume point),
-``student-<updates>.pt`` snapshots each with its deployable ``agent-<updates>.pt``, the final
+``student-<updates>.pt`` snapshots each with its deployable ``agent-<updates>.pt`` (and
+``agent-00000000.pt`` after a first stage on single frames), the final
 ``student.pt``, the deployable ``agent.pt`` (:class:`twist_models.agent.Agent`) and
 ``summary.json``.
 
@@ -378,6 +379,8 @@ class _Run:
             self.evaluate()
         if self.frame_updates < c.frame_steps and self.updates == 0:
             self.frame_stage(on_progress)
+            # The first stage's student, deployable: the ablation without Eq. 3/4 after it.
+            self._bundle(self.out / f"agent-{0:08d}.pt")
         windows = self._windows() if self.updates < c.steps else iter(())
         params = list(self.student.parameters())
         sums: dict[str, float] = {}
