@@ -187,6 +187,15 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
         assert ablated[field] == off and ablated["recipe"] == "dense"
         assert {k: v for k, v in ablated.items() if k != field} == {
             k: v for k, v in dense.items() if k != field}
+    readout = stored("twist-readout")["distil"]
+    assert readout["recipe"] == "readout" and readout["readout"] and readout["frame_steps"] > 0
+    for name, field, off in (("twist-readout-no-windows", "steps", 0),
+                             ("twist-readout-no-stage", "frame_steps", 0),
+                             ("twist-readout-no-norm", "encoder_norm", "none")):
+        ablated = stored(name)["distil"]
+        assert ablated[field] == off and ablated["recipe"] == "readout"
+        assert {k: v for k, v in ablated.items() if k != field} == {
+            k: v for k, v in readout.items() if k != field}
     student_steps = stored("twist")["distil"]["steps"]
     for name, kind in (("dreamer-dr", "dreamer"), ("dreamer-no-dr", "dreamer"),
                        ("state-recon", "state-recon")):

@@ -1,0 +1,218 @@
+"""The read-out student (``readout`` recipe): velocities paired with what one image shows by
+measurement on D, the robust standardisation and the Huber read-out loss against hand
+computations, the state rebuilt from exact positions against D's own, the window and step
+paths agreeing, gradients that reach the CNN and never the teacher's filter, and the recipe
+through config, run folder and agent bundle."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from twist_data.errors import ConfigError
+from twist_data.reader import open_dataset
+from twist_data.synth import _DT, SynthConfig, write_synthetic_dataset
+from twist_models.agent import Agent
+from twist_models.config import (
+    MLPConfig,
+    ReadOutConfig,
+    StudentConfig,
+    from_json,
+    student_preset,
+    teacher_preset,
+    to_json,
+)
+from twist_models.distillation import Distillation, distil_preset
+from twist_models.frame_targets import FrameRows
+from twist_models.losses import readout_loss
+from twist_models.readout import pair_velocities, robust_standardisation
+from twist_models.stages.distill import DistilError, distil, load_student, stored_config
+from twist_models.student import Student, copy_teacher_filter
+from twist_models.teacher import Teacher, save_teacher
+
+DATA = SynthConfig(episodes=8, steps=30, views=2, image_size=64, seed=11, length_jitter=6)
+LAYOUT = (("position", 3), ("velocity", 2))  # the synthetic cartpole's: x, cos, sin | ẋ, θ̇
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Teacher, FrameRows]:
+    """(dataset, teacher checkpoint, the teacher, every step of D)."""
+    root = tmp_path_factory.mktemp("readout")
+    dataset = write_synthetic_dataset(root / "ds", DATA)
+    torch.manual_seed(4)
+    teacher = Teacher(teacher_preset("tiny", 5, 1)).eval()
+    data = open_dataset(dataset)
+    rows = FrameRows.of(data, np.arange(data.n_episodes))
+    return dataset, save_teacher(root / "teacher.pt", teacher), teacher, rows
+
+
+def _paired(rows: FrameRows) -> ReadOutConfig:
+    return pair_velocities(rows.state.numpy(), rows.steps == rows.episode_start, LAYOUT,
+                           MLPConfig(layers=2, units=32))
+
+
+def test_velocities_are_paired_with_what_they_are_the_rate_of(inputs) -> None:
+    config = _paired(inputs[3])
+    assert config.read == (0, 1, 2) and config.angles == ((1, 2),)
+    assert config.velocities == ((3, 0), (4, 1, 2))  # ẋ from x, θ̇ from the angle of (cos, sin)
+    # The synthetic integrator moves x by DT * ẋ each step: the gain is exactly 1 / DT.
+    assert config.gains == pytest.approx((1 / _DT, 1 / _DT), rel=1e-5)
+
+
+def test_a_velocity_no_image_shows_is_refused_naming_it(inputs) -> None:
+    rows = inputs[3]
+    state = rows.state.numpy().copy()
+    state[:, 4] = np.random.default_rng(0).normal(size=len(state))  # θ̇ now the rate of nothing
+    with pytest.raises(ConfigError, match="velocity component 4 of synth is the rate of no"):
+        pair_velocities(state, rows.steps == rows.episode_start, LAYOUT, MLPConfig(), "synth")
+    with pytest.raises(ConfigError, match="declares no state layout"):
+        pair_velocities(state, rows.steps == rows.episode_start, (), MLPConfig())
+
+
+def test_robust_standardisation_by_hand() -> None:
+    angle = np.array([0.0, 0.1, -0.1, 0.2, 3.0])
+    x = np.array([0.0, 1.0, 2.0, 3.0, 100.0])
+    states = np.stack([x, np.cos(angle), np.sin(angle), x, x], 1)
+    config = ReadOutConfig(state_dim=5, read=(0, 1, 2), angles=((1, 2),),
+                           velocities=((3, 0), (4, 1, 2)), gains=(1.0, 1.0))
+    mean, scale = robust_standardisation(states, config)
+    assert mean == pytest.approx([2.0, np.cos(0.1), np.sin(0.1)], rel=1e-6)
+    # x: |x - 2| = 2, 1, 0, 1, 98 -> MAD 1. sin: the MAD of sin(angle) beats the cosine's.
+    sine_mad = np.median(np.abs(np.sin(angle) - np.sin(0.1)))
+    assert scale == pytest.approx([1.4826, 1.4826 * sine_mad, 1.4826 * sine_mad], rel=1e-5)
+
+
+def test_readout_loss_is_the_huber_loss_of_standardised_errors() -> None:
+    read = torch.tensor([[0.5, -3.0], [2.0, 0.1]])
+    state = torch.tensor([[1.0, 9.0, 2.0], [0.0, 9.0, 0.5]])  # components 0 and 2 are read
+    mean, scale = torch.tensor([0.0, 1.0]), torch.tensor([2.0, 0.5])
+    errors = read.numpy() - np.array([[0.5, 2.0], [0.0, -1.0]])  # (state - mean) / scale
+    huber = np.where(np.abs(errors) <= 1, 0.5 * errors**2, np.abs(errors) - 0.5)
+    assert float(readout_loss(read, state, mean, scale, (0, 2))) == pytest.approx(huber.mean())
+
+
+def test_exact_positions_rebuild_ds_state_and_the_teachers_embedding(inputs) -> None:
+    _, _, teacher, rows = inputs
+    config = _paired(rows)
+    student = Student(student_preset("tiny", teacher.config, readout=config))
+    copy_teacher_filter(student, teacher.world_model)
+    episode = slice(0, int(np.flatnonzero(rows.episode_start == rows.episode_start[0]).size))
+    state = rows.state[episode][None]  # [1, T, S], one whole episode
+    is_first = torch.zeros(state.shape[:2], dtype=torch.bool)
+    is_first[0, 0] = True
+    rebuilt = student.readout.window_state(state[..., :3], is_first)
+    torch.testing.assert_close(rebuilt[0, 1:], state[0, 1:], atol=1e-4, rtol=1e-4)
+    assert torch.equal(rebuilt[0, 0, 3:], torch.zeros(2))  # no frame before the first
+    wm = teacher.world_model
+    with torch.no_grad():
+        torch.testing.assert_close(student._embed_state(rebuilt)[0, 1:],
+                                   wm.embed(state)[0, 1:], atol=1e-4, rtol=1e-4)
+
+
+def test_an_angle_difference_is_wrapped_and_reads_lie_on_the_circle() -> None:
+    config = ReadOutConfig(state_dim=5, read=(0, 1, 2), angles=((1, 2),),
+                           velocities=((3, 0), (4, 1, 2)), gains=(10.0, 2.0),
+                           encoder=MLPConfig(layers=1, units=4))
+    readout = Student(StudentConfig(readout=config)).readout
+    before = torch.tensor([0.5, np.cos(3.1), np.sin(3.1)], dtype=torch.float32)
+    after = torch.tensor([0.7, np.cos(-3.1), np.sin(-3.1)], dtype=torch.float32)
+    state = readout.state(after, before)
+    expected_turn = 2 * np.pi - 6.2  # across the bottom: +0.083, not -6.2
+    torch.testing.assert_close(state, torch.tensor([0.7, np.cos(-3.1), np.sin(-3.1), 10 * 0.2,
+                                                    2 * expected_turn], dtype=torch.float32))
+    with torch.no_grad():
+        readout.head.weight.zero_()
+        readout.head.bias.copy_(torch.tensor([0.0, 3.0, 4.0]))
+    assert readout.positions(torch.zeros(1, readout.head.in_features))[0, 1:].tolist() == \
+        pytest.approx([0.6, 0.8])
+
+
+def test_the_step_path_acts_on_what_the_window_path_filters(inputs) -> None:
+    dataset, _, teacher, rows = inputs
+    torch.manual_seed(0)
+    student = Student(student_preset("tiny", teacher.config, readout=_paired(rows))).eval()
+    copy_teacher_filter(student, teacher.world_model)
+    data = open_dataset(dataset)
+    images = np.empty((6, *data.spec.image_shape), np.uint8)
+    data.read_frames(np.arange(6), np.zeros(6, int), images)
+    image = torch.as_tensor(images)
+    is_first = torch.tensor([[True, False, False, False, False, False]])
+    with torch.no_grad():
+        window = student.embed(image[None], is_first)[0]
+        history = None
+        for t in range(6):
+            step, history = student.step_embed(image[t:t + 1], history)
+            torch.testing.assert_close(step[0], window[t], atol=1e-5, rtol=1e-5)
+
+
+def test_gradients_reach_the_cnn_and_never_the_teachers_filter(inputs) -> None:
+    dataset, _, teacher, rows = inputs
+    config = distil_preset("tiny", "readout")
+    student = Student(student_preset("tiny", teacher.config, readout=_paired(rows)))
+    copy_teacher_filter(student, teacher.world_model)
+    from twist_data.sampler import WindowSampler
+
+    windows = WindowSampler(open_dataset(dataset), config.sampler("all", 0)).batch()
+    loss, _ = Distillation(student, teacher, config)(
+        {k: torch.as_tensor(windows[k]) for k in ("image", "state", "action", "is_first")})
+    loss.backward()
+    assert student.encoder.net[0].weight.grad.abs().sum() > 0
+    assert student.readout.head.weight.grad.abs().sum() > 0
+    assert all(p.grad is None for p in student.rssm.parameters())
+    assert all(p.grad is None for p in student.readout.encoder.parameters())
+    assert all(p.grad is None for p in teacher.parameters())
+    # The first stage's term reaches the CNN too.
+    student.zero_grad(set_to_none=True)
+    features = student.encoder(torch.as_tensor(windows["image"][:, 0]))
+    student.readout.loss(features, torch.as_tensor(windows["state"][:, 0])).backward()
+    assert student.encoder.net[0].weight.grad.abs().sum() > 0
+
+
+def test_the_readout_recipe_travels_with_the_run_and_the_bundle(inputs, tmp_path: Path) -> None:
+    dataset, teacher_path, teacher, _ = inputs
+    config = distil_preset("tiny", "readout", frame_eval_every=2)
+    assert config.readout and config.frame_steps == 4 and config.encoder_norm == "layer"
+    summary = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
+    assert stored_config(tmp_path / "run") == config
+    student, extra = load_student(summary.student)
+    assert extra["distil"]["recipe"] == "readout"
+    assert from_json(StudentConfig, to_json(student.config)) == student.config
+    # The filter the student acts through is still the teacher's, after training.
+    for name, weight in teacher.world_model.rssm.state_dict().items():
+        assert torch.equal(student.rssm.state_dict()[name], weight), name
+    agent = Agent.load(summary.agent)
+    assert agent.info["recipe"] == "readout" and agent.config.student.readout.velocities
+    assert torch.equal(agent.student.readout.scale, student.readout.scale)
+    assert (agent.student.readout.scale != 1).all()  # D's spread, not the initial value
+    first_stage = Agent.load(tmp_path / "run" / "agent-00000000.pt")
+    assert first_stage.info["frame_updates"] == 4 and first_stage.info["student_updates"] == 0
+    image = np.zeros((64, 64, 3), np.uint8)
+    _, state = agent.act(image)
+    _, state = agent.act(image, state)
+    assert state.frames.shape == (1, 3)  # the last read-out: x, cos, sin
+    assert "read_error" in (tmp_path / "run" / "heldout.csv").read_text().splitlines()[0]
+
+
+def test_a_readout_student_reads_one_frame(inputs) -> None:
+    config = _paired(inputs[3])
+    with pytest.raises(ConfigError, match="frames=2"):
+        StudentConfig(readout=config, frames=2)
+    with pytest.raises(ConfigError, match="frames=2"):
+        distil_preset("tiny", "readout", frames=2)
+    with pytest.raises(ConfigError, match="cover the state's 5 components exactly once"):
+        dataclasses.replace(config, read=(0, 1))
+
+
+def test_a_teacher_that_hides_components_is_refused(inputs, tmp_path: Path) -> None:
+    dataset = inputs[0]
+    base = teacher_preset("tiny", 5, 1)
+    hidden = dataclasses.replace(base, world_model=dataclasses.replace(
+        base.world_model, state_hidden=(3, 4)))
+    path = save_teacher(tmp_path / "hidden.pt", Teacher(hidden))
+    with pytest.raises(DistilError, match=r"never reads components \[3, 4\]"):
+        distil(dataset, tmp_path / "run", distil_preset("tiny", "readout"), teacher=path)
+    assert not (tmp_path / "run").exists()
