@@ -187,16 +187,16 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
         assert ablated[field] == off and ablated["recipe"] == "dense"
         assert {k: v for k, v in ablated.items() if k != field} == {
             k: v for k, v in dense.items() if k != field}
+    student_steps = stored("twist")["distil"]["steps"]
     readout = stored("twist-readout")["distil"]
     assert readout["recipe"] == "readout" and readout["readout"] and readout["frame_steps"] > 0
-    for name, field, off in (("twist-readout-no-windows", "steps", 0),
-                             ("twist-readout-no-stage", "frame_steps", 0),
-                             ("twist-readout-no-norm", "encoder_norm", "none")):
+    assert readout["steps"] == 0
+    for name, changed in (("twist-readout-eq34", {"steps": student_steps}),
+                          ("twist-readout-no-stage", {"frame_steps": 0, "steps": student_steps}),
+                          ("twist-readout-no-norm", {"encoder_norm": "none"})):
         ablated = stored(name)["distil"]
-        assert ablated[field] == off and ablated["recipe"] == "readout"
-        assert {k: v for k, v in ablated.items() if k != field} == {
-            k: v for k, v in readout.items() if k != field}
-    student_steps = stored("twist")["distil"]["steps"]
+        assert ablated["recipe"] == "readout"
+        assert ablated == {**readout, **changed}, name
     for name, kind in (("dreamer-dr", "dreamer"), ("dreamer-no-dr", "dreamer"),
                        ("state-recon", "state-recon")):
         baseline = stored(name)["baseline"]
@@ -237,12 +237,13 @@ def test_cli_refuses_bad_input_without_traceback(tmp_path: Path) -> None:
 
 
 def test_every_student_column_is_an_agent_with_a_valid_recipe() -> None:
-    from twist_models.distillation import distil_preset
+    from twist_models.distillation import DISTIL_PRESETS, distil_preset
     from twist_models.stages.report import AGENTS, STUDENT_VARIANTS
 
     assert set(STUDENT_VARIANTS) <= set(AGENTS)
     for name, (recipe, changes) in STUDENT_VARIANTS.items():
-        config = distil_preset("tiny", recipe, **changes)
-        base = distil_preset("tiny", recipe)
+        # The report gives every column the preset's window updates unless it says otherwise.
+        base = distil_preset("tiny", recipe, steps=DISTIL_PRESETS["tiny"].steps)
+        config = distil_preset("tiny", recipe, **{"steps": base.steps, **changes})
         # Each ablation changes exactly what it names, and changes something.
         assert {k for k in changes if getattr(config, k) != getattr(base, k)} == set(changes), name

@@ -75,8 +75,8 @@ AGENTS: dict[str, str] = {
     "twist-dense-zero-start": "dense recipe with windows from h = 0 (as the paper)",
     "twist-dense-shared-draws": "dense recipe with the teacher's sampling draws (as the paper)",
     "twist-readout": "TWIST, read-out recipe (not in the paper)",
-    "twist-readout-no-windows": "read-out recipe w/o Eq. 3/4 after its single-frame stage",
-    "twist-readout-no-stage": "read-out recipe w/o its single-frame stage",
+    "twist-readout-eq34": "read-out recipe + Eq. 3/4 through the teacher's filter after it",
+    "twist-readout-no-stage": "Eq. 3/4 alone through the teacher's filter (no read-out stage)",
     "twist-readout-no-norm": "read-out recipe w/o the layer-normalised CNN",
     "twist-scratch": "TWIST, student RSSM from scratch (as the paper)",
     "twist-no-imagined": "TWIST w/o imagined distillation",
@@ -91,7 +91,8 @@ AGENTS: dict[str, str] = {
 #: changes. The paper's recipe with its from-scratch start and its two ablations, action
 #: matching at the weight measured to help at CPU scale, and the ``dense`` recipe with each
 #: of its parts removed in turn, and the ``readout`` recipe likewise. Every student gets the
-#: report's ``updates`` on windows (docs/design.md, "Recipes").
+#: report's ``updates`` on windows, except the read-out recipe's own, which has none
+#: (docs/design.md, "Recipes").
 STUDENT_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "twist": ("paper", {}),
     "twist-scratch": ("paper", {"copy_dynamics": False}),
@@ -105,10 +106,10 @@ STUDENT_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "twist-dense-no-norm": ("dense", {"encoder_norm": "none"}),
     "twist-dense-zero-start": ("dense", {"window_start": "zero"}),
     "twist-dense-shared-draws": ("dense", {"shared_draws": True}),
-    "twist-readout": ("readout", {}),
-    "twist-readout-no-windows": ("readout", {"steps": 0}),
+    "twist-readout": ("readout", {"steps": 0}),
+    "twist-readout-eq34": ("readout", {}),
     "twist-readout-no-stage": ("readout", {"frame_steps": 0}),
-    "twist-readout-no-norm": ("readout", {"encoder_norm": "none"}),
+    "twist-readout-no-norm": ("readout", {"encoder_norm": "none", "steps": 0}),
 }
 #: Table I of the paper (held-out backgrounds, 500K frames, paper-scale models on GPU): the
 #: values as the paper reports them. Blank cells are values not transcribed.
@@ -210,8 +211,9 @@ class _Pipeline:
     def student_config(self, name: str) -> DistilConfig:
         """The distillation config of student column ``name``."""
         recipe, changes = STUDENT_VARIANTS[name]
+        steps = self.config.updates or DISTIL_PRESETS[self.config.preset].steps
         return distil_preset(self.config.preset, recipe,
-                             **{"seed": self.seed, "steps": self.config.updates, **changes})
+                             **{"seed": self.seed, "steps": steps, **changes})
 
     def run(self) -> None:
         self._collect()
