@@ -113,7 +113,7 @@ def test_exact_positions_rebuild_ds_state_and_the_teachers_embedding(inputs) -> 
                                    wm.embed(state)[0, 1:], atol=1e-4, rtol=1e-4)
 
 
-def test_an_angle_difference_is_wrapped_and_reads_lie_on_the_circle() -> None:
+def test_an_angle_difference_is_wrapped_whatever_the_pairs_length() -> None:
     config = ReadOutConfig(state_dim=5, read=(0, 1, 2), angles=((1, 2),),
                            velocities=((3, 0), (4, 1, 2)), gains=(10.0, 2.0),
                            encoder=MLPConfig(layers=1, units=4))
@@ -124,11 +124,9 @@ def test_an_angle_difference_is_wrapped_and_reads_lie_on_the_circle() -> None:
     expected_turn = 2 * np.pi - 6.2  # across the bottom: +0.083, not -6.2
     torch.testing.assert_close(state, torch.tensor([0.7, np.cos(-3.1), np.sin(-3.1), 10 * 0.2,
                                                     2 * expected_turn], dtype=torch.float32))
-    with torch.no_grad():
-        readout.head.weight.zero_()
-        readout.head.bias.copy_(torch.tensor([0.0, 3.0, 4.0]))
-    assert readout.positions(torch.zeros(1, readout.head.in_features))[0, 1:].tolist() == \
-        pytest.approx([0.6, 0.8])
+    # A pair off the circle turns by its angle alone, whatever its length.
+    longer = readout.state(torch.cat([after[:1], 3 * after[1:]]), before)
+    assert float(longer[4]) == pytest.approx(2 * expected_turn, rel=1e-5)
 
 
 def test_the_step_path_acts_on_what_the_window_path_filters(inputs) -> None:
@@ -216,3 +214,19 @@ def test_a_teacher_that_hides_components_is_refused(inputs, tmp_path: Path) -> N
     with pytest.raises(DistilError, match=r"never reads components \[3, 4\]"):
         distil(dataset, tmp_path / "run", distil_preset("tiny", "readout"), teacher=path)
     assert not (tmp_path / "run").exists()
+
+
+def test_the_sensitivity_weighted_readout_loss_by_hand() -> None:
+    config = ReadOutConfig(state_dim=5, read=(0, 1, 2), angles=((1, 2),),
+                           velocities=((3, 0), (4, 1, 2)), gains=(1.0, 1.0),
+                           encoder=MLPConfig(layers=1, units=4))
+    readout = Student(StudentConfig(readout=config)).readout
+    features = torch.randn(4, readout.head.in_features)
+    state, weight = torch.randn(4, 5), torch.rand(4, 5)
+    with torch.no_grad():
+        readout.set_standardisation(np.array([0.1, 0.9, 0.0]), np.array([2.0, 0.5, 0.5]))
+        read = readout.head(features) * torch.tensor([2.0, 0.5, 0.5]) + torch.tensor(
+            [0.1, 0.9, 0.0])
+    expected = (weight[:, :3] * (read - state[:, :3]) ** 2).sum(1).mean()
+    assert float(readout.loss(features, state, weight)) == pytest.approx(float(expected),
+                                                                         rel=1e-5)

@@ -302,8 +302,8 @@ class ReadOutConfig:
     read: tuple[int, ...] = (0,)
     """State components the CNN reads from a single frame (what one image shows)."""
     angles: tuple[tuple[int, int], ...] = ()
-    """(cos, sin) component pairs of ``read`` that lie on the unit circle: read-outs are
-    projected onto it, and their angle is what a velocity differentiates."""
+    """(cos, sin) component pairs of ``read`` that lie on the unit circle: their angle is
+    what a velocity differentiates."""
     velocities: tuple[tuple[int, ...], ...] = ()
     """One entry per derived component: (its index, a read index) for a linear difference, or
     (its index, cos index, sin index) for an angle difference."""

@@ -124,6 +124,12 @@ class DistilConfig:
     own state encoder and filter, copied and fixed (:mod:`twist_models.readout`); its first
     stage regresses the state one frame shows, and any ``steps`` then train the CNN with
     Eq. 3/4 through the fixed filter (not in the paper)."""
+    readout_weights: str = "sensitivity"
+    """How a read-out student's first stage weighs its errors: ``sensitivity``, each read
+    component's squared error times the teacher actor's squared sensitivity to it at that
+    step (:func:`~twist_models.frame_targets.actor_sensitivity`: a fallen pole weighs nothing,
+    the lean the actor balances on most), or ``robust``, a Huber loss on errors in units of
+    each component's robust spread over D."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -198,6 +204,7 @@ class DistilConfig:
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
+        require_choice(self, "readout_weights", ("sensitivity", "robust"))
         require_choice(self, "precision", PRECISIONS)
         require_choice(self, "window_start", WINDOW_STARTS)
         require_choice(self, "resident_data", ("auto", "on", "off"))

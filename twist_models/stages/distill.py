@@ -275,8 +275,9 @@ class _Run:
         self.student.to(device)
         move_optimiser_state(self.optimiser, device)
         dense = config.frame_post_weight > 0 or config.state_weight > 0
+        weighted = config.readout and config.readout_weights == "sensitivity"
         self.targets = (self._teacher_targets()
-                        if dense or config.window_start == "teacher" else None)
+                        if dense or weighted or config.window_start == "teacher" else None)
         # What the first stage draws frames from: the teacher's targets, or for a read-out
         # student the states alone.
         self.rows = self.targets if self.targets is not None else rows
@@ -460,7 +461,8 @@ class _Run:
             with encoder_autocast(c.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
             if self.student.readout is not None:
-                terms = {"readout": self.student.readout.loss(embed, batch["state"])}
+                weight = batch.get("sensitivity") if c.readout_weights == "sensitivity" else None
+                terms = {"readout": self.student.readout.loss(embed, batch["state"], weight)}
                 loss = terms["readout"]
             else:
                 terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
