@@ -86,13 +86,24 @@ def test_robust_standardisation_by_hand() -> None:
     assert scale == pytest.approx([1.4826, 1.4826 * sine_mad, 1.4826 * sine_mad], rel=1e-5)
 
 
-def test_readout_loss_is_the_huber_loss_of_standardised_errors() -> None:
-    read = torch.tensor([[0.5, -3.0], [2.0, 0.1]])
-    state = torch.tensor([[1.0, 9.0, 2.0], [0.0, 9.0, 0.5]])  # components 0 and 2 are read
-    mean, scale = torch.tensor([0.0, 1.0]), torch.tensor([2.0, 0.5])
-    errors = read.numpy() - np.array([[0.5, 2.0], [0.0, -1.0]])  # (state - mean) / scale
-    huber = np.where(np.abs(errors) <= 1, 0.5 * errors**2, np.abs(errors) - 0.5)
-    assert float(readout_loss(read, state, mean, scale, (0, 2))) == pytest.approx(huber.mean())
+def test_readout_errors_and_loss_by_hand() -> None:
+    config = ReadOutConfig(state_dim=5, read=(0, 1, 2), angles=((1, 2),),
+                           velocities=((3, 0), (4, 1, 2)), gains=(1.0, 1.0),
+                           encoder=MLPConfig(layers=1, units=4))
+    readout = Student(StudentConfig(readout=config)).readout
+    readout.set_standardisation(np.zeros(3), np.array([2.0, 0.1, 0.1]))
+    # x read 0.5 off; the pole read at 0.3 rad with length 2 where it is at -0.1 rad.
+    read = torch.tensor([[1.5, 2 * np.cos(0.3), 2 * np.sin(0.3)]], dtype=torch.float32)
+    state = torch.tensor([[1.0, np.cos(-0.1), np.sin(-0.1), 7.0, 7.0]], dtype=torch.float32)
+    errors = readout.errors(read, state)
+    torch.testing.assert_close(errors, torch.tensor([[0.25, 10.0, 4.0]]), rtol=1e-5, atol=1e-5)
+    # Across the bottom the angle's error is the short way round.
+    bottom = readout.errors(torch.tensor([[1.0, np.cos(3.1), np.sin(3.1)]]),
+                            torch.tensor([[1.0, np.cos(-3.1), np.sin(-3.1), 0.0, 0.0]]))
+    assert float(bottom[0, 2]) == pytest.approx((3.1 - (2 * np.pi - 3.1)) / 0.1, rel=1e-4)
+    e = np.array([0.25, 10.0, 4.0])
+    huber = np.where(np.abs(e) <= 1, 0.5 * e**2, np.abs(e) - 0.5)
+    assert float(readout_loss(errors)) == pytest.approx(huber.mean(), rel=1e-5)
 
 
 def test_exact_positions_rebuild_ds_state_and_the_teachers_embedding(inputs) -> None:
@@ -228,5 +239,6 @@ def test_the_sensitivity_weighted_readout_loss_by_hand() -> None:
         read = readout.head(features) * torch.tensor([2.0, 0.5, 0.5]) + torch.tensor(
             [0.1, 0.9, 0.0])
     expected = (weight[:, :3] * (read - state[:, :3]) ** 2).sum(1).mean()
-    assert float(readout.loss(features, state, weight)) == pytest.approx(float(expected),
-                                                                         rel=1e-5)
+    with torch.no_grad():
+        loss = float(readout.loss(features, state, weight))
+    assert loss == pytest.approx(float(expected), rel=1e-5)

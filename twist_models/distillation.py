@@ -124,12 +124,14 @@ class DistilConfig:
     own state encoder and filter, copied and fixed (:mod:`twist_models.readout`); its first
     stage regresses the state one frame shows, and any ``steps`` then train the CNN with
     Eq. 3/4 through the fixed filter (not in the paper)."""
-    readout_weights: str = "sensitivity"
-    """How a read-out student's first stage weighs its errors: ``sensitivity``, each read
-    component's squared error times the teacher actor's squared sensitivity to it at that
-    step (:func:`~twist_models.frame_targets.actor_sensitivity`: a fallen pole weighs nothing,
-    the lean the actor balances on most), or ``robust``, a Huber loss on errors in units of
-    each component's robust spread over D."""
+    readout_weights: str = "robust"
+    """How a read-out student's first stage weighs its errors: ``robust``, a Huber loss on
+    errors in units of each component's robust spread over D (an angle's error for a
+    (cos, sin) pair), or ``sensitivity``, each read component's squared error times the
+    teacher actor's squared sensitivity to it at that step
+    (:func:`~twist_models.frame_targets.actor_sensitivity`; measured worse: the cosine,
+    which the actor barely weighs, is then read 0.33 off upright and the teacher's encoder
+    sees a pole that is not there, docs/results.md)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""

@@ -155,10 +155,8 @@ def weighted_state_loss(prediction: torch.Tensor, state: torch.Tensor, weight: t
     return (weight.detach() * (prediction - state.detach()) ** 2).sum(-1).mean()
 
 
-def readout_loss(standardised: torch.Tensor, state: torch.Tensor, mean: torch.Tensor,
-                 scale: torch.Tensor, read: tuple[int, ...]) -> torch.Tensor:
-    """Huber loss (delta 1) of the head's standardised read-out against the true read
-    components: standardised [..., R], state [..., S], mean and scale [R] -> []. Huber, so
-    that a fallen pole, many robust spreads away, cannot outweigh the lean near upright."""
-    target = (state[..., list(read)] - mean) / scale
-    return F.huber_loss(standardised.float(), target)
+def readout_loss(errors: torch.Tensor) -> torch.Tensor:
+    """Huber loss (delta 1) of read-out errors in units of their robust spread: errors
+    [..., R] -> [] (mean). Huber, so that a fallen pole, many robust spreads away, cannot
+    outweigh the lean near upright."""
+    return F.huber_loss(errors.float(), torch.zeros_like(errors, dtype=torch.float32))

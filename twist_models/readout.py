@@ -142,33 +142,53 @@ class StateReadOut(nn.Module):
     def loss(self, features: torch.Tensor, state: torch.Tensor,
              weight: torch.Tensor | None = None) -> torch.Tensor:
         """The first stage's term: CNN features [..., F], the true state [..., S] and per
-        component weights [..., S] -> [], the weighted squared error of the read components
-        (:func:`~twist_models.losses.weighted_state_loss`), or without weights the Huber
-        loss in robust spreads (:func:`~twist_models.losses.readout_loss`)."""
-        read = list(self.config.read)
+        component weights [..., S] -> []: the Huber loss of :meth:`errors`
+        (:func:`~twist_models.losses.readout_loss`), or with weights the weighted squared
+        error of the read components (:func:`~twist_models.losses.weighted_state_loss`)."""
         if weight is not None:
+            read = list(self.config.read)
             return weighted_state_loss(self.read(features), state[..., read], weight[..., read])
-        return readout_loss(self.head(features), state, self.mean, self.scale, self.config.read)
+        return readout_loss(self.errors(self.read(features), state))
 
     def read(self, features: torch.Tensor) -> torch.Tensor:
         """The read components in the state's units, as the head gives them: [..., F] ->
         [..., R]."""
         return self.head(features).float() * self.scale + self.mean
 
+    def errors(self, read: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Read-out errors in units of D's robust spread: read [..., R] (as :meth:`read`
+        gives it), the true state [..., S] -> [..., R]. A (cos, sin) pair's slots hold the
+        error of its angle (the sine's slot, wrapped) and of its length against 1 (the
+        cosine's): near upright the cosine carries no first-order information, so asking for
+        it component by component spends the CNN on what the filter does not need."""
+        errors = read - state[..., list(self.config.read)]
+        if not self._angles:
+            return errors / self.scale
+        truth = state[..., list(self.config.read)]
+        parts = list(errors.unbind(-1))
+        for c, s in self._angles:
+            parts[s] = wrapped(torch.atan2(read[..., s], read[..., c])
+                               - torch.atan2(truth[..., s], truth[..., c]))
+            parts[c] = torch.sqrt(read[..., c] ** 2 + read[..., s] ** 2) - 1.0
+        return torch.stack(parts, -1) / self.scale
+
     @torch.no_grad()
     def error(self, features: torch.Tensor, state: torch.Tensor) -> float:
-        """RMS error of the read components in units of D's robust spread: features
-        [..., F], state [..., S] -> a float."""
-        error = (self.positions(features) - state[..., list(self.config.read)]) / self.scale
-        return float(error.pow(2).mean().sqrt())
+        """RMS of :meth:`errors` over steps and components: features [..., F], state
+        [..., S] -> a float."""
+        return float(self.errors(self.read(features), state).pow(2).mean().sqrt())
 
     def positions(self, features: torch.Tensor) -> torch.Tensor:
-        """What the filter is handed: the read components as read, [..., F] -> [..., R]. A
-        (cos, sin) pair is not put on the unit circle: near upright the cosine is read far
-        less precisely than the sine it would then rescale (measured on cartpole: the sine's
-        RMSE within 10° of upright 0.041 as read, 0.054 projected); its angle, which the
-        velocity differentiates, does not depend on the pair's length."""
-        return self.read(features)
+        """What the filter is handed: the read components, a (cos, sin) pair put on the
+        unit circle (trained for its angle, :meth:`errors`): [..., F] -> [..., R]."""
+        read = self.read(features)
+        if not self._angles:
+            return read
+        parts = list(read.unbind(-1))
+        for c, s in self._angles:
+            norm = torch.sqrt(parts[c] ** 2 + parts[s] ** 2).clamp_min(1e-6)
+            parts[c], parts[s] = parts[c] / norm, parts[s] / norm
+        return torch.stack(parts, -1)
 
     def state(self, positions: torch.Tensor, previous: torch.Tensor) -> torch.Tensor:
         """The full state from this step's read-out and the last one's (the same tensor at an
