@@ -155,8 +155,9 @@ def weighted_state_loss(prediction: torch.Tensor, state: torch.Tensor, weight: t
     return (weight.detach() * (prediction - state.detach()) ** 2).sum(-1).mean()
 
 
-def readout_loss(errors: torch.Tensor) -> torch.Tensor:
-    """Huber loss (delta 1) of read-out errors in units of their robust spread: errors
-    [..., R] -> [] (mean). Huber, so that a fallen pole, many robust spreads away, cannot
-    outweigh the lean near upright."""
-    return F.huber_loss(errors.float(), torch.zeros_like(errors, dtype=torch.float32))
+def readout_loss(errors: torch.Tensor, delta: float = 1.0) -> torch.Tensor:
+    """Huber loss of read-out errors in units of their robust spread, quadratic up to
+    ``delta`` spreads and linear beyond: errors [..., R] -> [] (mean). Linear far out, so
+    that a fallen pole, many robust spreads away, cannot outweigh the lean near upright."""
+    return F.huber_loss(errors.float(), torch.zeros_like(errors, dtype=torch.float32),
+                        delta=delta)

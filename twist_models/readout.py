@@ -39,6 +39,8 @@ UNIT_CIRCLE = 1e-3
 MAD_TO_STD = 1.4826
 #: The least spread a read component is standardised by (a component D never varies).
 MIN_SCALE = 1e-3
+#: Robust spreads within which the read-out's loss is quadratic (beyond: linear).
+HUBER_DELTA = 10.0
 
 
 def unit_circle_pairs(states: np.ndarray, read: list[int]) -> list[tuple[int, int]]:
@@ -148,7 +150,7 @@ class StateReadOut(nn.Module):
         if weight is not None:
             read = list(self.config.read)
             return weighted_state_loss(self.read(features), state[..., read], weight[..., read])
-        return readout_loss(self.errors(self.read(features), state))
+        return readout_loss(self.errors(self.read(features), state), HUBER_DELTA)
 
     def read(self, features: torch.Tensor) -> torch.Tensor:
         """The read components in the state's units, as the head gives them: [..., F] ->
