@@ -131,7 +131,9 @@ class DistilConfig:
     teacher actor's squared sensitivity to it at that step
     (:func:`~twist_models.frame_targets.actor_sensitivity`; measured worse: the cosine,
     which the actor barely weighs, is then read 0.33 off upright and the teacher's encoder
-    sees a pole that is not there, docs/results.md)."""
+    sees a pole that is not there, docs/results.md), or ``frame``: ``robust`` with each
+    frame weighted by the teacher actor's summed sensitivity there (mean 1 over D), so that
+    frames whose errors the actor ignores (a fallen pole) weigh little."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -206,7 +208,7 @@ class DistilConfig:
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
-        require_choice(self, "readout_weights", ("sensitivity", "robust"))
+        require_choice(self, "readout_weights", ("robust", "sensitivity", "frame"))
         require_choice(self, "precision", PRECISIONS)
         require_choice(self, "window_start", WINDOW_STARTS)
         require_choice(self, "resident_data", ("auto", "on", "off"))

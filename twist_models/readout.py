@@ -40,7 +40,7 @@ MAD_TO_STD = 1.4826
 #: The least spread a read component is standardised by (a component D never varies).
 MIN_SCALE = 1e-3
 #: Robust spreads within which the read-out's loss is quadratic (beyond: linear).
-HUBER_DELTA = 10.0
+HUBER_DELTA = 1.0
 
 
 def unit_circle_pairs(states: np.ndarray, read: list[int]) -> list[tuple[int, int]]:
@@ -142,15 +142,17 @@ class StateReadOut(nn.Module):
                          for k, v in enumerate(config.velocities) if len(v) == 3]
 
     def loss(self, features: torch.Tensor, state: torch.Tensor,
-             weight: torch.Tensor | None = None) -> torch.Tensor:
+             weight: torch.Tensor | None = None, frame_weight: torch.Tensor | None = None
+             ) -> torch.Tensor:
         """The first stage's term: CNN features [..., F], the true state [..., S] and per
-        component weights [..., S] -> []: the Huber loss of :meth:`errors`
-        (:func:`~twist_models.losses.readout_loss`), or with weights the weighted squared
+        component weights [..., S] -> []: the Huber loss of :meth:`errors`, each frame
+        weighted by ``frame_weight`` [...] if given (:func:`~twist_models.losses.readout_loss`),
+        or with component weights the weighted squared
         error of the read components (:func:`~twist_models.losses.weighted_state_loss`)."""
         if weight is not None:
             read = list(self.config.read)
             return weighted_state_loss(self.read(features), state[..., read], weight[..., read])
-        return readout_loss(self.errors(self.read(features), state), HUBER_DELTA)
+        return readout_loss(self.errors(self.read(features), state), HUBER_DELTA, frame_weight)
 
     def read(self, features: torch.Tensor) -> torch.Tensor:
         """The read components in the state's units, as the head gives them: [..., F] ->

@@ -275,7 +275,7 @@ class _Run:
         self.student.to(device)
         move_optimiser_state(self.optimiser, device)
         dense = config.frame_post_weight > 0 or config.state_weight > 0
-        weighted = config.readout and config.readout_weights == "sensitivity"
+        weighted = config.readout and config.readout_weights != "robust"
         self.targets = (self._teacher_targets()
                         if dense or weighted or config.window_start == "teacher" else None)
         # What the first stage draws frames from: the teacher's targets, or for a read-out
@@ -462,7 +462,10 @@ class _Run:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
             if self.student.readout is not None:
                 weight = batch.get("sensitivity") if c.readout_weights == "sensitivity" else None
-                terms = {"readout": self.student.readout.loss(embed, batch["state"], weight)}
+                frame_weight = (batch["sensitivity"].mean(-1) if c.readout_weights == "frame"
+                                else None)
+                terms = {"readout": self.student.readout.loss(embed, batch["state"], weight,
+                                                              frame_weight)}
                 loss = terms["readout"]
             else:
                 terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
