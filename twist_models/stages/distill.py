@@ -77,7 +77,12 @@ from twist_models.frame_targets import (
     teacher_latent_before,
     teacher_targets,
 )
-from twist_models.readout import pair_velocities, robust_standardisation
+from twist_models.readout import (
+    TYPICAL_SPREADS,
+    pair_velocities,
+    robust_standardisation,
+    typical,
+)
 from twist_models.stages.runlog import (
     Board,
     RunFolder,
@@ -279,8 +284,10 @@ class _Run:
         self.targets = (self._teacher_targets()
                         if dense or weighted or config.window_start == "teacher" else None)
         # What the first stage draws frames from: the teacher's targets, or for a read-out
-        # student the states alone.
+        # student the states alone, of D's typical frames (readout.TYPICAL_SPREADS).
         self.rows = self.targets if self.targets is not None else rows
+        if self.student.readout is not None:
+            self.rows = self._typical(self.rows)
         self.objective: nn.Module = Distillation(
             self.student, self.teacher, config,
             self.targets.scale if self.targets is not None else 1.0)
@@ -296,6 +303,18 @@ class _Run:
         if self.writes:
             _run_folder(out).write_config(config, student=student_config, teacher=teacher_path,
                                           dataset=dataset_path, world_size=world)
+
+    def _typical(self, rows: FrameRows) -> FrameRows:
+        readout = self.student.readout
+        keep = typical(rows.state.cpu().numpy(), readout.config, readout.mean.cpu().numpy(),
+                       readout.scale.cpu().numpy())
+        log.info("the read-out trains on %d of %d frames (within %.0f robust spreads)",
+                 keep.sum(), keep.size, TYPICAL_SPREADS)
+        return dataclasses.replace(rows, steps=rows.steps[keep],
+                                   episode_start=rows.episode_start[keep],
+                                   **{k: getattr(rows, k)[torch.as_tensor(keep)]
+                                      for k in ("state", "deter", "sensitivity")
+                                      if hasattr(rows, k)})
 
     def _teacher_targets(self) -> TeacherTargets:
         c = self.config
