@@ -26,10 +26,11 @@ twist-data contact-sheet "$TASK" "$OUT/contact-sheet.png"
 cp "$OUT/dataset/collect/collect-000/learning-curve.png" "$OUT/learning-curve.png"
 DISTIL=()
 if [[ -f "$OUT/student/config.json" ]]; then DISTIL=(--resume); fi
-# The dense recipe (per-frame targets from D's state; not in the paper): RECIPE=paper runs
-# the paper's objective alone (README, "Recipes").
+# The readout recipe (the student reads D's state into the teacher's own filter; not in the
+# paper): RECIPE=paper runs the paper's objective alone, RECIPE=dense the per-frame targets
+# beside it (README, "Recipes").
 twist-distil --dataset "$OUT/dataset" --out "$OUT/student" --preset "$PRESET" \
-             --recipe "${RECIPE:-dense}" "${DISTIL[@]}"
+             --recipe "${RECIPE:-readout}" "${DISTIL[@]}"
 cp "$OUT/student/latent-agreement.png" "$OUT/latent-agreement.png"
 EVAL=(--episodes "${EVAL_EPISODES:-10}")
 if [[ "$PRESET" == tiny ]]; then EVAL=(--episodes 2 --max-steps 50); fi

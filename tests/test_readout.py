@@ -69,6 +69,9 @@ def test_a_velocity_no_image_shows_is_refused_naming_it(inputs) -> None:
     state[:, 4] = np.random.default_rng(0).normal(size=len(state))  # θ̇ now the rate of nothing
     with pytest.raises(ConfigError, match="velocity component 4 of synth is the rate of no"):
         pair_velocities(state, rows.steps == rows.episode_start, LAYOUT, MLPConfig(), "synth")
+    state[:, 4] = 2 * state[:, 3]  # both velocities now the rate of x
+    with pytest.raises(ConfigError, match="velocity components 3 and 4 of synth pair with the"):
+        pair_velocities(state, rows.steps == rows.episode_start, LAYOUT, MLPConfig(), "synth")
     with pytest.raises(ConfigError, match="declares no state layout"):
         pair_velocities(state, rows.steps == rows.episode_start, (), MLPConfig())
 

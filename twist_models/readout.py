@@ -31,8 +31,10 @@ from twist_models.config import MLPConfig, ReadOutConfig
 from twist_models.losses import readout_loss, weighted_state_loss
 from twist_models.networks import StateEncoder
 
-#: The least correlation between a velocity and the difference it is paired with.
-MIN_PAIRING = 0.95
+#: The least correlation between a velocity and the difference it is paired with. Measured:
+#: cartpole 0.992 and 0.999; cup-catch under a random policy 0.90-0.97 (its cup accelerates
+#: within one agent step), where every other candidate stays below 0.37.
+MIN_PAIRING = 0.8
 #: A (cos, sin) pair lies on the unit circle when c^2 + s^2 is this close to 1 on average.
 UNIT_CIRCLE = 1e-3
 #: MAD of a normal variable over its standard deviation: turns the MAD into a spread.
@@ -102,6 +104,10 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
             raise ConfigError(f"velocity component {v} of {task} is the rate of no component "
                               f"one image shows (best correlation {scores[best]:.2f} with "
                               f"component(s) {list(best)}, needs {MIN_PAIRING})")
+        taken = {tuple(pair[1:]): pair[0] for pair in velocities}
+        if best in taken:
+            raise ConfigError(f"velocity components {taken[best]} and {v} of {task} pair "
+                              f"with the same component(s) {list(best)}")
         difference = candidates[best]
         gains.append(float(difference @ target / max(difference @ difference, 1e-12)))
         velocities.append((v, *best))
