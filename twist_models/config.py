@@ -285,11 +285,6 @@ class TeacherConfig(DreamerConfig):
             raise ConfigError(f"explore_noise must be >= 0, got {self.explore_noise}")
 
 
-#: How a read-out student derives a velocity: from one read component's difference between
-#: successive frames (``linear``) or from a (cos, sin) pair's angle difference (``angle``).
-VELOCITY_SOURCES = ("linear", "angle")
-
-
 @dataclass(frozen=True)
 class ReadOutConfig:
     """A student that reads the teacher's state from images (the ``readout`` recipe): a CNN

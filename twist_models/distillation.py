@@ -125,9 +125,10 @@ class DistilConfig:
     stage regresses the state one frame shows, and any ``steps`` then train the CNN with
     Eq. 3/4 through the fixed filter (not in the paper)."""
     readout_weights: str = "robust"
-    """How a read-out student's first stage weighs its errors: ``robust``, a Huber loss on
-    errors in units of each component's robust spread over D (an angle's error for a
-    (cos, sin) pair), or ``sensitivity``, each read component's squared error times the
+    """How a read-out student's first stage weighs its errors (on D's typical frames,
+    :data:`~twist_models.readout.TYPICAL_SPREADS`): ``robust``, each component's error in
+    units of its robust spread over D (an angle's error for a (cos, sin) pair), squared, or
+    ``sensitivity``, each read component's squared error times the
     teacher actor's squared sensitivity to it at that step
     (:func:`~twist_models.frame_targets.actor_sensitivity`; measured worse: the cosine,
     which the actor barely weighs, is then read 0.33 off upright and the teacher's encoder
@@ -258,7 +259,8 @@ FRAME_STEPS = {"dense": {"paper": 20_000, "quick": 10_000, "tiny": 4},
 #: Updates on windows (Eq. 3/4 through the teacher's fixed filter) after the read-out stage:
 #: none by default. Measured on cartpole (docs/results.md), 200 of them lowered the held-out
 #: posterior KL from 8.6 to 5.1 nats while the read-out's error grew by half and the return
-#: fell from 724.0 to 336.0: the paper's objective, through a filter that is already the
+#: fell from 724.0 to 336.0 (with an earlier, all-frames read-out stage): the paper's
+#: objective, through a filter that is already the
 #: teacher's, trades the state the actor needs for a closer posterior. ``steps`` adds them.
 READOUT_STEPS = {"paper": 0, "quick": 0, "tiny": 0}
 

@@ -4,7 +4,8 @@ The teacher's filter, given the exact state, is what the student tries to imitat
 images. This module lets the student hand that filter a state instead of an image embedding:
 
 * a linear head on the CNN reads the components a single frame shows (positions, and the
-  (cos, sin) of angles), trained per frame against D's states, each standardised by its
+  (cos, sin) of angles), trained per frame against D's states on D's typical frames (every
+  read component within :data:`TYPICAL_SPREADS` of its median), each error in units of its
   *robust* spread over D (median and MAD), so that the near-upright lean a balancing teacher
   keeps, which fills most of D, sets the scale rather than the rare fallen poles;
 * each velocity is a gain times the difference of two successive read-outs (an angle's
