@@ -227,6 +227,14 @@ class DistilConfig:
         targets over D) or a read-out student's."""
         return self.frame_post_weight > 0 or self.state_weight > 0 or self.readout
 
+    @property
+    def needs_teacher_targets(self) -> bool:
+        """Whether the teacher's filter over D is needed: for the ``dense`` terms, a read-out
+        weighted by the actor's sensitivity, or windows started from the teacher's latent."""
+        return (self.frame_post_weight > 0 or self.state_weight > 0
+                or (self.readout and self.readout_weights != "robust")
+                or self.window_start == "teacher")
+
     def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
         return SamplerConfig(length=self.length, batch_size=batch_size or self.batch_size,
                              view=self.view, seed=seed, keys=KEYS,

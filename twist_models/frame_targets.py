@@ -23,6 +23,7 @@ h is at hand (the same terms are added to Eq. 3 on windows in the second stage).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -76,6 +77,16 @@ class FrameRows:
 
     def __len__(self) -> int:
         return int(self.steps.size)
+
+    def subset(self, keep: np.ndarray) -> FrameRows:
+        """The rows where ``keep`` (bool [N]) holds, every per-row field with them (a
+        subclass's too; other fields unchanged)."""
+        mask = torch.as_tensor(keep)
+        rows = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return dataclasses.replace(self, **{
+            name: value[keep] if isinstance(value, np.ndarray)
+            else value[mask.to(value.device)] if torch.is_tensor(value) else value
+            for name, value in rows.items()})
 
     @classmethod
     def of(cls, data: MatchingDataset, episodes: np.ndarray,

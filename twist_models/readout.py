@@ -188,10 +188,10 @@ class StateReadOut(nn.Module):
         error of its angle (the sine's slot, wrapped) and of its length against 1 (the
         cosine's): near upright the cosine carries no first-order information, so asking for
         it component by component spends the CNN on what the filter does not need."""
-        errors = read - state[..., list(self.config.read)]
+        truth = state[..., list(self.config.read)]
+        errors = read - truth
         if not self._angles:
             return errors / self.scale
-        truth = state[..., list(self.config.read)]
         parts = list(errors.unbind(-1))
         for c, s in self._angles:
             parts[s] = wrapped(torch.atan2(read[..., s], read[..., c])

@@ -279,10 +279,7 @@ class _Run:
             freeze_dynamics(self.student)
         self.student.to(device)
         move_optimiser_state(self.optimiser, device)
-        dense = config.frame_post_weight > 0 or config.state_weight > 0
-        weighted = config.readout and config.readout_weights != "robust"
-        self.targets = (self._teacher_targets()
-                        if dense or weighted or config.window_start == "teacher" else None)
+        self.targets = self._teacher_targets() if config.needs_teacher_targets else None
         # What the first stage draws frames from: the teacher's targets, or for a read-out
         # student the states alone, of D's typical frames (readout.TYPICAL_SPREADS).
         self.rows = self.targets if self.targets is not None else rows
@@ -310,11 +307,7 @@ class _Run:
                        readout.scale.cpu().numpy())
         log.info("the read-out trains on %d of %d frames (within %.0f robust spreads)",
                  keep.sum(), keep.size, TYPICAL_SPREADS)
-        return dataclasses.replace(rows, steps=rows.steps[keep],
-                                   episode_start=rows.episode_start[keep],
-                                   **{k: getattr(rows, k)[torch.as_tensor(keep)]
-                                      for k in ("state", "deter", "sensitivity")
-                                      if hasattr(rows, k)})
+        return rows.subset(keep)
 
     def _teacher_targets(self) -> TeacherTargets:
         c = self.config
