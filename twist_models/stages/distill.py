@@ -67,6 +67,7 @@ from twist_models.distillation import (
     Distillation,
     encoder_autocast,
     frame_loss,
+    frame_lr,
     latent_agreement,
 )
 from twist_models.frame_targets import (
@@ -410,6 +411,7 @@ class _Run:
             self.optimiser.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
+            self._set_lr(frame_lr(c, self.frame_updates))
             self.optimiser.step()
             for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
                 sums[key] = sums.get(key, 0.0) + float(value.detach())  # also syncs a GPU
@@ -491,6 +493,7 @@ class _Run:
                         torch.distributed.all_reduce(p.grad)
                         p.grad /= self.world
             grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
+            self._set_lr(frame_lr(c, self.frame_updates))
             self.optimiser.step()
             for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
                 sums[key] = sums.get(key, 0.0) + float(value.detach())
@@ -512,6 +515,11 @@ class _Run:
                 sums, done, spent = {}, 0, 0.0
                 self._checkpoint(self.run_folder.latest)
         self.seconds += time.perf_counter() - wall
+        self._set_lr(c.lr)
+
+    def _set_lr(self, lr: float) -> None:
+        for group in self.optimiser.param_groups:
+            group["lr"] = lr
 
     def _bundle(self, path: Path) -> Path:
         # Every snapshot is deployable too: the return need not rise with the updates (it fell
