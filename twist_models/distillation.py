@@ -17,7 +17,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -49,16 +48,6 @@ from twist_models.teacher import Teacher
 KEYS = ("image", "state", "action", "is_first")
 PRECISIONS = ("float32", "bfloat16", "auto")
 WINDOW_STARTS = ("zero", "teacher")
-FRAME_SCHEDULES = ("constant", "cosine")
-
-
-def frame_lr(config: DistilConfig, update: int) -> float:
-    """The first stage's learning rate at ``update`` (counted from 0) under
-    ``config.frame_schedule``."""
-    if config.frame_schedule == "constant" or config.frame_steps == 0:
-        return config.lr
-    return config.lr * 0.5 * (1.0 + math.cos(math.pi * min(update, config.frame_steps)
-                                             / config.frame_steps))
 
 @dataclass(frozen=True)
 class DistilConfig:
@@ -151,9 +140,10 @@ class DistilConfig:
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
     frame_batch: int = 64
     """Frames per update of the first stage."""
-    frame_schedule: str = "constant"
-    """Learning rate over the first stage: ``constant`` (``lr``) or ``cosine``, from ``lr``
-    to 0 along a half cosine over ``frame_steps`` (later updates on windows use ``lr``)."""
+    frame_augment: str = "none"
+    """Augmentation of the first stage's frames: ``none`` or ``colour``
+    (:func:`~twist_models.augmentation.colour_jitter`: channel order, gain and offset drawn
+    per frame)."""
     frame_eval_every: int = 500
     """First-stage updates between held-out evaluations and checkpoints."""
     rare_states: float = 0.0
@@ -224,7 +214,7 @@ class DistilConfig:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
         require_choice(self, "readout_weights", ("robust", "sensitivity", "frame"))
-        require_choice(self, "frame_schedule", FRAME_SCHEDULES)
+        require_choice(self, "frame_augment", ("none", "colour"))
         require_choice(self, "precision", PRECISIONS)
         require_choice(self, "window_start", WINDOW_STARTS)
         require_choice(self, "resident_data", ("auto", "on", "off"))

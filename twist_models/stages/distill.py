@@ -46,6 +46,7 @@ from twist_data.sampler import (
 )
 from twist_data.seeding import derived_seed
 from twist_models.agent import Agent
+from twist_models.augmentation import colour_jitter
 from twist_models.checkpoint import (
     move_optimiser_state,
     read_checkpoint,
@@ -67,7 +68,6 @@ from twist_models.distillation import (
     Distillation,
     encoder_autocast,
     frame_loss,
-    frame_lr,
     latent_agreement,
 )
 from twist_models.frame_targets import (
@@ -411,7 +411,6 @@ class _Run:
             self.optimiser.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
-            self._set_lr(frame_lr(c, self.frame_updates))
             self.optimiser.step()
             for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
                 sums[key] = sums.get(key, 0.0) + float(value.detach())  # also syncs a GPU
@@ -465,13 +464,18 @@ class _Run:
         batches = FrameBatches(self.data, self.rows, c.frame_batch, c.frames, c.view,
                                seed=derived_seed(c.seed, 7, self.frame_updates, self.rank))
         params = [p for p in self.student.parameters() if p.requires_grad]
+        jitter = torch.Generator().manual_seed(derived_seed(c.seed, 9, self.frame_updates,
+                                                            self.rank))
         sums: dict[str, float] = {}
         done, spent, wall = 0, 0.0, time.perf_counter()
         log.info("frame stage: %d updates of %d frames", c.frame_steps - self.frame_updates,
                  c.frame_batch)
         while self.frame_updates < c.frame_steps:
             tick = time.perf_counter()
-            batch = {k: v.to(self.device, non_blocking=True) for k, v in batches.batch().items()}
+            batch = batches.batch()
+            if c.frame_augment == "colour":
+                batch["image"] = colour_jitter(batch["image"], jitter)
+            batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
             with encoder_autocast(c.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
             if self.student.readout is not None:
@@ -493,7 +497,6 @@ class _Run:
                         torch.distributed.all_reduce(p.grad)
                         p.grad /= self.world
             grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
-            self._set_lr(frame_lr(c, self.frame_updates))
             self.optimiser.step()
             for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
                 sums[key] = sums.get(key, 0.0) + float(value.detach())
@@ -515,11 +518,6 @@ class _Run:
                 sums, done, spent = {}, 0, 0.0
                 self._checkpoint(self.run_folder.latest)
         self.seconds += time.perf_counter() - wall
-        self._set_lr(c.lr)
-
-    def _set_lr(self, lr: float) -> None:
-        for group in self.optimiser.param_groups:
-            group["lr"] = lr
 
     def _bundle(self, path: Path) -> Path:
         # Every snapshot is deployable too: the return need not rise with the updates (it fell
