@@ -13,12 +13,14 @@ draws them.
 
 Per setting it prints one JSON line: ``near_sine_rmse``, the read sine's RMS error over the
 frames within ``--near`` degrees of upright (what the teacher's actor needs; a lean's sine),
-``x_rmse`` over the same frames, ``scene_near_sine_rmse``, ``scene_sine_bias`` (the mean error) and ``scene_x_rmse`` per
-episode (scene) and the
-number of scenes whose error exceeds ``--bad`` (a scene where the pole is not read).
+``x_rmse`` over the same frames, ``scene_near_sine_rmse``, ``scene_sine_bias`` (the mean
+error) and ``scene_x_rmse`` per episode (scene), and the number of scenes whose error
+exceeds ``--bad`` (a scene where the pole is not read). With ``--trajectories`` it prints
+one line per evaluated episode instead: the errors along the agent's own states before the
+pole first leans past ``--near`` degrees, and after.
 
 ``python experiments/readout_scenes.py AGENT.pt DATASET [--settings stored,heldout]
-[--backgrounds DIR] [--episodes 30] [--near 10] [--bad 0.05]``
+[--backgrounds DIR] [--episodes 30] [--near 10] [--bad 0.05] [--trajectories EVAL/trajectories]``
 """
 
 from __future__ import annotations
@@ -147,7 +149,7 @@ def main() -> None:
     for setting in args.settings.split(","):
         frames = rendered(dataset, episodes, setting, args.backgrounds, args.seed)
         sq_sine, sq_x, scenes, biases, x_scenes = [], [], [], [], []
-        for index, images in zip(episodes, frames):
+        for index, images in zip(episodes, frames, strict=True):
             state = dataset.episode(int(index)).state
             read = read_positions(agent, images)
             near = (state[:, COS] > 0) & (np.abs(state[:, SIN]) < near_sine)

@@ -245,3 +245,40 @@ def test_the_sensitivity_weighted_readout_loss_by_hand() -> None:
     with torch.no_grad():
         loss = float(readout.loss(features, state, weight))
     assert loss == pytest.approx(float(expected), rel=1e-5)
+
+
+def test_colour_jitter_recolours_each_sample_alike_across_its_frames(monkeypatch) -> None:
+    from twist_models import augmentation
+
+    g = torch.Generator().manual_seed(3)
+    image = torch.randint(0, 256, (16, 2, 5, 5, 3), dtype=torch.uint8, generator=g)
+    # Gain 1 and offset 0 leave a pure channel permutation, one per sample.
+    monkeypatch.setattr(augmentation, "GAIN", (1.0, 1.0))
+    monkeypatch.setattr(augmentation, "OFFSET", 0.0)
+    out = augmentation.colour_jitter(image, torch.Generator().manual_seed(0))
+    assert out.shape == image.shape and out.dtype == torch.uint8
+    orders = set()
+    for b in range(16):
+        order = [next(c for c in range(3) if torch.equal(out[b, ..., k], image[b, ..., c]))
+                 for k in range(3)]
+        assert sorted(order) == [0, 1, 2]
+        orders.add(tuple(order))
+    assert len(orders) > 1  # drawn per sample
+    # With the default ranges: each output channel is gain * an input channel + offset, the
+    # same affine map on both stacked frames, clipped to 0-255.
+    monkeypatch.undo()
+    out = augmentation.colour_jitter(image, torch.Generator().manual_seed(1)).float()
+    src = image.float()
+    for b in range(4):
+        for k in range(3):
+            fits = []
+            for c in range(3):
+                x, y = src[b, ..., c].flatten(), out[b, ..., k].flatten()
+                inside = (y > 0) & (y < 255)
+                a = torch.linalg.lstsq(torch.stack([x[inside], torch.ones_like(x[inside])], 1),
+                                       y[inside, None]).solution.flatten()
+                fits.append((float((y[inside] - a[0] * x[inside] - a[1]).abs().max()), a))
+            residual, (gain, offset) = min(fits, key=lambda f: f[0])
+            assert residual < 1.0  # rounding only (another channel misses by ~100)
+            assert augmentation.GAIN[0] - 1e-3 <= gain <= augmentation.GAIN[1] + 1e-3
+            assert abs(offset) <= augmentation.OFFSET + 1e-3
