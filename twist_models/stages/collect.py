@@ -302,8 +302,8 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # evaluated 950-990 at several points: docs/experiments.md, "Teacher learning"), then the
     # best evaluated teacher acts frozen to 300K (~3 minutes): the student distilled from 300
     # episodes tracks the teacher far better than from 28 (docs/experiments.md, the student
-    # short of data). Evaluations of 10 episodes every 2K frames (state only, ~1 s each):
-    # with 3 the best of many evaluations was chosen by noise as often as by skill.
+    # short of data). Evaluations of 10 episodes every 2K frames (state only, ~1 s each) give
+    # freeze_best twice the candidates of 3 episodes every 4K, each estimated more steadily.
     "quick": CollectConfig(model="quick", frames=300_000, learn_frames=100_000, freeze_best=True,
                            supersample=2, eval_every=2_000, eval_episodes=10,
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,
