@@ -282,3 +282,9 @@ def test_colour_jitter_recolours_each_sample_alike_across_its_frames(monkeypatch
             assert residual < 1.0  # rounding only (another channel misses by ~100)
             assert augmentation.GAIN[0] - 1e-3 <= gain <= augmentation.GAIN[1] + 1e-3
             assert abs(offset) <= augmentation.OFFSET + 1e-3
+
+
+def test_an_unknown_frame_augmentation_is_refused_naming_it() -> None:
+    assert distil_preset("tiny", "readout", frame_augment="colour").frame_augment == "colour"
+    with pytest.raises(ConfigError, match="frame_augment must be one of none, colour, got 'hue'"):
+        distil_preset("tiny", "readout", frame_augment="hue")
