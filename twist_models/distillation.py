@@ -267,7 +267,7 @@ RECIPES: dict[str, dict[str, Any]] = {
 #: costs ~1/20 of a ``quick`` update on windows (36 against ~1.5 per second on the 2-core CPU,
 #: bfloat16); the ``dense`` recipe's held-out per-frame agreement still improved at 3,000; the
 #: read-out student's held-out return still rose from 15,000 to 30,000 (docs/experiments.md,
-#: "Where the read-out student loses the pole"), ~11 minutes alone at ``quick`` size.
+#: "Where the read-out student loses the pole"), ~14 minutes on one thread at ``quick`` size.
 FRAME_STEPS = {"dense": {"paper": 20_000, "quick": 10_000, "tiny": 4},
                "readout": {"paper": 60_000, "quick": 30_000, "tiny": 4}}
 #: Updates on windows (Eq. 3/4 through the teacher's fixed filter) after the read-out stage:

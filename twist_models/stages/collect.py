@@ -298,8 +298,8 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # thousand behaviour updates that the main job's budget allows; 15-step open-loop
     # overshooting trains what imagination uses.
     # The teacher learns for 100K frames (at 28K it had not learned to balance; at 60K
-    # three seeds' best teachers scored 826-978 held out; from 64K to 100K two of them
-    # evaluated 950-990 at several points: docs/experiments.md, "Teacher learning"), then the
+    # three seeds' best teachers scored 826-978 held out, at 100K 982-995: docs/experiments.md,
+    # "Does the teacher balance when it learns longer?"), then the
     # best evaluated teacher acts frozen to 300K (~3 minutes): the student distilled from 300
     # episodes tracks the teacher far better than from 28 (docs/experiments.md, the student
     # short of data). Evaluations of 10 episodes every 2K frames (state only, ~1 s each) give
