@@ -209,6 +209,25 @@ def test_the_readout_recipe_travels_with_the_run_and_the_bundle(inputs, tmp_path
     assert "read_error" in (tmp_path / "run" / "heldout.csv").read_text().splitlines()[0]
 
 
+def test_a_resumed_first_stage_grows_to_the_new_frame_steps(inputs, tmp_path: Path) -> None:
+    dataset, teacher_path, _, _ = inputs
+    config = distil_preset("tiny", "readout", frame_eval_every=2)
+    distil(dataset, tmp_path / "run", config, teacher=teacher_path)
+    longer = dataclasses.replace(config, frame_steps=8)
+    summary = distil(dataset, tmp_path / "run", longer, teacher=teacher_path, resume=True)
+    logged = (tmp_path / "run" / "frame-metrics.csv").read_text().splitlines()[1:]
+    assert [int(row.split(",")[0]) for row in logged] == [2, 4, 6, 8]
+    assert Agent.load(summary.agent).info["frame_updates"] == 8
+    assert stored_config(tmp_path / "run") == longer
+    # Once windows have followed the first stage, it cannot grow any more.
+    windows = dataclasses.replace(config, steps=2)
+    distil(dataset, tmp_path / "windows", windows, teacher=teacher_path)
+    with pytest.raises(DistilError, match=r"ended at 4 frame updates and 2 updates.*"
+                                          r"frame_steps=8 cannot"):
+        distil(dataset, tmp_path / "windows", dataclasses.replace(windows, frame_steps=8),
+               teacher=teacher_path, resume=True)
+
+
 def test_a_readout_student_reads_one_frame(inputs) -> None:
     config = _paired(inputs[3])
     with pytest.raises(ConfigError, match="frames=2"):

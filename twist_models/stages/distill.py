@@ -227,7 +227,10 @@ def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resum
     before = folder.stored() if resume else None
     changed = (["the student's sizes differ"] if before is not None
                and from_json(StudentConfig, before.get("student", {})) != student else [])
-    folder.open(config, resume, ("steps",), also=changed)
+    # frame_steps may grow on resume: the first stage's loss still falls where a preset stops
+    # it, and continuing costs only the added updates (docs/experiments.md).
+    folder.open(config, resume, ("steps", "frame_steps"), "--steps and --set frame_steps",
+                also=changed)
 
 
 def _rank_and_world() -> tuple[int, int]:
@@ -266,6 +269,11 @@ class _Run:
             self.heldout_first = checkpoint.extra.get("heldout_first", {})
             torch.set_rng_state(torch.tensor(checkpoint.extra["torch_rng"], dtype=torch.uint8))
             log.info("resumed the student at update %d from %s", self.updates, latest)
+            if self.updates > 0 and self.frame_updates < config.frame_steps:
+                raise DistilError(
+                    f"the run's first stage ended at {self.frame_updates} frame updates and "
+                    f"{self.updates} updates on windows followed; frame_steps="
+                    f"{config.frame_steps} cannot extend it now")
         else:
             self.updates, self.frame_updates, self.seconds, self.heldout_first = 0, 0, 0.0, {}
             if self.student.readout is not None:
