@@ -122,6 +122,74 @@ def test_config_validation_and_presets() -> None:
         DRConfig(light_range=(2.0, 1.0))
 
 
+def _camouflage_sampler(share: float, grid: np.ndarray | None, seed: int = 0) -> DRSampler:
+    config = DRConfig(low_contrast_share=share)
+    return DRSampler(config, np.full((5, 3), 0.5), views=4, n_backgrounds=2, max_offset=8,
+                     seed=seed, background_colours=grid)
+
+
+def _two_textures() -> np.ndarray:
+    """Colour grids of two 16-pixel textures: flat (0.1, 0.5, 0.9); red left half, blue right."""
+    grid = np.zeros((2, 4, 4, 3), np.float32)
+    grid[0] = (0.1, 0.5, 0.9)
+    grid[1, :, :2], grid[1, :, 2:] = (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)
+    return grid
+
+
+def test_camouflaged_bodies_take_a_colour_of_their_background_crop() -> None:
+    # Nominal colours 0.5 and colour_delta 0.3: every colour lies in [0.2, 0.8].
+    red, blue = (0.8, 0.2, 0.2), (0.2, 0.2, 0.8)
+    sampler = _camouflage_sampler(1.0, _two_textures())
+    sampler.begin_episode()
+    seen = set()
+    for _ in range(100):
+        p = sampler.sample()
+        assert np.all(np.abs(p["colour"] - 0.5) <= 0.3 + 1e-6)
+        for v in range(4):
+            body = tuple(round(float(c), 6) for c in p["colour"][v, 0])
+            x = p["background_offset"][v, 1]
+            if p["background"][v] == 0:
+                assert body == (0.2, 0.5, 0.8)
+            elif x == 0:  # an 8-pixel crop from column 0 shows only the red half
+                assert body == red
+            elif x == 8:
+                assert body == blue
+            else:
+                assert body in (red, blue)
+                seen.add(body)
+    assert seen == {red, blue}
+
+
+def test_low_contrast_share_is_the_share_of_camouflaged_views() -> None:
+    grid = _two_textures()
+    uniform, half = _camouflage_sampler(0.0, None), _camouflage_sampler(0.5, grid)
+    uniform.begin_episode(seed=3)
+    half.begin_episode(seed=3)
+    first, camouflaged = uniform.sample(), half.sample()
+    # Camouflage only redraws the body's colour: the rest is the uniform draw, same stream.
+    for key in first:
+        body_free = slice(None) if key != "colour" else (slice(None), slice(1, None))
+        np.testing.assert_array_equal(first[key][body_free], camouflaged[key][body_free])
+    flat = (0.2, 0.5, 0.8)
+    hits = [np.allclose(p["colour"][v, 0], flat) for p in (half.sample() for _ in range(500))
+            for v in range(4) if p["background"][v] == 0]
+    assert 0.43 < np.mean(hits) < 0.57  # 0.5 +- 3 standard errors of ~1,000 draws
+    with pytest.raises(ConfigError, match="colour grid"):
+        _camouflage_sampler(0.5, None)
+    with pytest.raises(ConfigError, match="low_contrast_share must be in"):
+        DRConfig(low_contrast_share=1.5)
+    with pytest.raises(ConfigError, match="needs a background bank"):
+        DRConfig(background="none", low_contrast_share=0.5)
+
+
+def test_colour_grid_area_averages_each_texture() -> None:
+    bank = procedural_bank("train", 3, 32)
+    grid = bank.colour_grid(4)
+    assert grid.shape == (3, 4, 4, 3)
+    expected = bank.textures[1, 8:16, 16:24].reshape(-1, 3).mean(0) / 255
+    np.testing.assert_allclose(grid[1, 1, 2], expected, atol=1 / 255)
+
+
 # -- rendering ------------------------------------------------------------------------------
 
 def _state(task: str = "cartpole-balance", steps: int = 5) -> np.ndarray:
@@ -197,7 +265,8 @@ def test_render_process_records_the_same_episode_as_in_process(gl: None) -> None
     env = TaskEnv("cartpole-balance", max_steps=15)
     recorded = []
     for make in (DRRenderer, RenderProcess):
-        with make(env.name, dr_preset("train"), 24, 2) as r:
+        # train-contrast: the child must hand the parent its bank's colours for camouflage.
+        with make(env.name, dr_preset("train-contrast"), 24, 2) as r:
             provenance = r.provenance()
             # Two episodes: the second gather must not see the first one's frames.
             episodes = [record_episode(env, r, r.sampler(4), random_policy(1, seed), seed=seed)[0]
@@ -208,7 +277,8 @@ def test_render_process_records_the_same_episode_as_in_process(gl: None) -> None
     for a, b in zip(inline, child, strict=True):
         assert b.image.shape == (16, 2, 24, 24, 3)
         np.testing.assert_array_equal(b.image, a.image)
-        np.testing.assert_array_equal(b.dr["background"], a.dr["background"])
+        for key in a.dr:
+            np.testing.assert_array_equal(b.dr[key], a.dr[key])
     assert not np.array_equal(child[0].image[:2], child[1].image[:2])
 
 

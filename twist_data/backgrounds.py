@@ -140,6 +140,12 @@ class BackgroundBank:
     def __len__(self) -> int:
         return int(self.textures.shape[0])
 
+    def colour_grid(self, cells: int = 16) -> np.ndarray:
+        """Every texture area-averaged to ``cells``² colours on a 0-1 scale:
+        [N, cells, cells, 3] float32 (what camouflaged bodies take their colour from)."""
+        return np.stack([cv2.resize(t, (cells, cells), interpolation=cv2.INTER_AREA)
+                         for t in self.textures]).astype(np.float32) / 255.0
+
     def digest(self) -> str:
         """SHA-256 of the texture bytes: recorded with a dataset to detect a changed bank."""
         return hashlib.sha256(self.textures.tobytes()).hexdigest()

@@ -56,6 +56,10 @@ class DRConfig:
     resample: Literal["step", "episode"] = "step"
     """Draw new rendering parameters every agent step (collection) or once per episode
     (evaluation)."""
+    low_contrast_share: float = 0.0
+    """Share of views whose agent body (the ``self`` material) takes the colour of a random
+    spot of the view's background crop, clipped into its colour range: camouflaged bodies,
+    the pairs a uniform draw rarely makes (0 = every colour uniform, as in the paper)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "light_range", tuple(float(v) for v in self.light_range))
@@ -81,6 +85,11 @@ class DRConfig:
                 raise ConfigError(f"{name} must satisfy 0 < low <= high, got {(lo, hi)}")
         if self.resample not in ("step", "episode"):
             raise ConfigError(f"resample must be 'step' or 'episode', got {self.resample!r}")
+        if not 0.0 <= self.low_contrast_share <= 1.0:
+            raise ConfigError(f"low_contrast_share must be in [0, 1], got {self.low_contrast_share}")
+        if self.low_contrast_share > 0 and (self.background == "none" or self.colour_delta == 0):
+            raise ConfigError(f"low_contrast_share > 0 needs a background bank and colour_delta > 0, "
+                              f"got background={self.background!r}, colour_delta={self.colour_delta}")
 
     def replace(self, **changes: Any) -> DRConfig:
         return dataclasses.replace(self, **changes)
@@ -103,9 +112,11 @@ _FULL = dict(light_range=(0.5, 1.5), camera_shift=0.05, camera_rotation=0.1,
 #: Named DR configurations. ``train``/``heldout`` are the paper's DMC setting (background and
 #: colours; re-sampled every step for collection, once per episode on held-out backgrounds for
 #: evaluation); the ``-full`` variants add the manipulation factors (light, camera, friction,
-#: mass); ``none`` renders the nominal scene.
+#: mass); ``train-contrast`` camouflages the body in a quarter of the training views (not in
+#: the paper; docs/experiments.md measures it); ``none`` renders the nominal scene.
 DR_PRESETS: dict[str, DRConfig] = {
     "train": DRConfig(background="train", resample="step"),
+    "train-contrast": DRConfig(background="train", resample="step", low_contrast_share=0.25),
     "heldout": DRConfig(background="heldout", resample="episode"),
     "train-full": DRConfig(background="train", resample="step", **_FULL),
     "heldout-full": DRConfig(background="heldout", resample="episode", **_FULL),
@@ -153,10 +164,13 @@ class DRSampler:
 
     Call :meth:`begin_episode` at every reset and :meth:`sample` at every step. With
     ``resample="episode"`` every step of an episode gets the parameters drawn at its start.
+    ``background_colours`` ([N, C, C, 3], 0-1: :meth:`BackgroundBank.colour_grid` of textures
+    ``2 * max_offset`` pixels wide) is needed only for ``low_contrast_share > 0``.
     """
 
     def __init__(self, config: DRConfig, nominal_colours: np.ndarray, views: int,
-                 n_backgrounds: int, max_offset: int, seed: int = 0) -> None:
+                 n_backgrounds: int, max_offset: int, seed: int = 0,
+                 background_colours: np.ndarray | None = None) -> None:
         if views < 1:
             raise ConfigError(f"views (K) must be >= 1, got {views}")
         self.config = config
@@ -164,6 +178,15 @@ class DRSampler:
         self.nominal_colours = np.asarray(nominal_colours, np.float32).reshape(len(COLOUR_GROUPS), 3)
         self.n_backgrounds = 0 if config.background == "none" else int(n_backgrounds)
         self.max_offset = int(max_offset)
+        self.background_colours = None
+        if config.low_contrast_share > 0 and self.n_backgrounds:
+            grid = None if background_colours is None else np.asarray(background_colours, np.float32)
+            if grid is None or grid.ndim != 4 or grid.shape[0] != self.n_backgrounds \
+                    or grid.shape[1] != grid.shape[2] or grid.shape[1] % 2:
+                raise ConfigError(f"low_contrast_share > 0 needs the bank's colour grid "
+                                  f"[{self.n_backgrounds}, C, C, 3] with C even, got "
+                                  f"{None if grid is None else grid.shape}")
+            self.background_colours = grid
         self._rng = np.random.default_rng(seed)
         self._episode_params: dict[str, np.ndarray] | None = None
 
@@ -198,8 +221,29 @@ class DRSampler:
         axis = rng.normal(size=(k, 3))
         axis /= np.linalg.norm(axis, axis=1, keepdims=True)
         rotation = (axis * rng.uniform(0, c.camera_rotation, (k, 1))).astype(np.float32)
+        if self.background_colours is not None:
+            # Drawn after everything else so that the other parameters' stream is the
+            # uniform draw's.
+            self._camouflage(colour, background, offset)
         return {"background": background, "background_offset": offset, "colour": colour,
                 "light": light, "camera_shift": shift, "camera_rotation": rotation}
+
+    def _camouflage(self, colour: np.ndarray, background: np.ndarray, offset: np.ndarray) -> None:
+        """Give a ``low_contrast_share`` of the views (in place) a body the colour of a random
+        cell of their background crop, as close as the body's colour range allows."""
+        grid, rng, k = self.background_colours, self._rng, self.views
+        cells = grid.shape[1]
+        chosen = rng.random(k) < self.config.low_contrast_share
+        # A crop is half the texture's side (textures are twice the view), so it covers
+        # cells // 2 grid cells per axis from the cell holding its corner.
+        spot = offset * cells // (2 * self.max_offset) + rng.integers(0, cells // 2, (k, 2))
+        spot = np.minimum(spot, cells - 1)
+        body = COLOUR_GROUPS.index("self")
+        nominal, delta = self.nominal_colours[body], self.config.colour_delta
+        for v in np.flatnonzero(chosen):
+            target = grid[background[v], spot[v, 0], spot[v, 1]]
+            colour[v, body] = np.clip(target, np.maximum(nominal - delta, 0.0),
+                                      np.minimum(nominal + delta, 1.0))
 
 
 def stack_view_params(per_step: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 import logging
 import math
 import os
@@ -153,10 +154,18 @@ class DRRenderer:
         return context
 
     # -- parameters --------------------------------------------------------------------------
+    @functools.cached_property
+    def background_colours(self) -> np.ndarray | None:
+        """The bank's colour grid when the config camouflages bodies, else ``None``."""
+        if self.bank is None or self.config.low_contrast_share == 0:
+            return None
+        return self.bank.colour_grid()
+
     def sampler(self, seed: int = 0) -> DRSampler:
         """A parameter sampler matched to this renderer's bank, nominal colours and K."""
         return DRSampler(self.config, self.nominal_colours, self.views,
-                         len(self.bank) if self.bank is not None else 0, self.max_offset, seed)
+                         len(self.bank) if self.bank is not None else 0, self.max_offset, seed,
+                         self.background_colours)
 
     def provenance(self, first_view: int = 0) -> dict[str, Any]:
         """The render block a dataset records (``spec.extra['render']``) to reproduce these

@@ -56,6 +56,7 @@ def _serve(conn: Connection) -> None:
     conn.send(("ready", {"nominal_colours": renderer.nominal_colours,
                          "n_backgrounds": len(bank) if bank is not None else 0,
                          "max_offset": renderer.max_offset,
+                         "background_colours": renderer.background_colours,
                          "provenance": renderer.provenance()}))
     frames = np.empty((512, views, image_size, image_size, 3), np.uint8)
     count, error = 0, None
@@ -128,7 +129,7 @@ class RenderProcess:
         """A parameter sampler matched to the child's bank, nominal colours and K."""
         info = self._info
         return DRSampler(self.config, info["nominal_colours"], self.views, info["n_backgrounds"],
-                         info["max_offset"], seed)
+                         info["max_offset"], seed, info["background_colours"])
 
     def provenance(self, first_view: int = 0) -> dict[str, Any]:
         """As :meth:`DRRenderer.provenance`."""
