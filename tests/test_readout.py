@@ -29,7 +29,12 @@ from twist_models.config import (
 from twist_models.distillation import Distillation, distil_preset
 from twist_models.frame_targets import FrameRows
 from twist_models.losses import readout_loss
-from twist_models.readout import pair_velocities, robust_standardisation
+from twist_models.readout import (
+    MAX_ATYPICAL_SHARE,
+    pair_velocities,
+    robust_standardisation,
+    training_frames,
+)
 from twist_models.stages.distill import DistilError, distil, load_student, stored_config
 from twist_models.student import Student, copy_teacher_filter
 from twist_models.teacher import Teacher, save_teacher
@@ -307,3 +312,18 @@ def test_an_unknown_frame_augmentation_is_refused_naming_it() -> None:
     assert distil_preset("tiny", "readout", frame_augment="colour").frame_augment == "colour"
     with pytest.raises(ConfigError, match="frame_augment must be one of none, colour, got 'hue'"):
         distil_preset("tiny", "readout", frame_augment="hue")
+
+
+def test_the_readout_leaves_out_rare_far_frames_but_not_a_phase_of_the_task() -> None:
+    # 100 frames: 5 atypical (a fallen pole, rare) or 40 (a swinging ball, a phase).
+    rare = np.arange(100) >= 5
+    common = np.arange(100) >= 40
+    assert 0.05 < MAX_ATYPICAL_SHARE < 0.40  # the two cases straddle it
+    np.testing.assert_array_equal(training_frames(rare, "auto"), rare)
+    assert training_frames(common, "auto").all()
+    np.testing.assert_array_equal(training_frames(common, "typical"), common)
+    assert training_frames(rare, "all").all()
+    assert distil_preset("tiny", "readout").readout_frames == "auto"
+    with pytest.raises(ConfigError, match="readout_frames must be one of auto, typical, all, "
+                                          "got 'most'"):
+        distil_preset("tiny", "readout", readout_frames="most")

@@ -135,6 +135,11 @@ class DistilConfig:
     sees a pole that is not there, docs/results.md), or ``frame``: ``robust`` with each
     frame weighted by the teacher actor's summed sensitivity there (mean 1 over D), so that
     frames whose errors the actor ignores (a fallen pole) weigh little."""
+    readout_frames: str = "auto"
+    """Which of D's frames the read-out's first stage trains on: ``typical`` (every read
+    component within :data:`~twist_models.readout.TYPICAL_SPREADS` robust spreads of its
+    median), ``all``, or ``auto``: typical unless more than
+    :data:`~twist_models.readout.MAX_ATYPICAL_SHARE` of D is not (then all)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -214,6 +219,7 @@ class DistilConfig:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
         require_choice(self, "readout_weights", ("robust", "sensitivity", "frame"))
+        require_choice(self, "readout_frames", ("auto", "typical", "all"))
         require_choice(self, "frame_augment", ("none", "colour"))
         require_choice(self, "precision", PRECISIONS)
         require_choice(self, "window_start", WINDOW_STARTS)

@@ -82,6 +82,7 @@ from twist_models.readout import (
     TYPICAL_SPREADS,
     pair_velocities,
     robust_standardisation,
+    training_frames,
     typical,
 )
 from twist_models.stages.runlog import (
@@ -312,10 +313,12 @@ class _Run:
 
     def _typical(self, rows: FrameRows) -> FrameRows:
         readout = self.student.readout
-        keep = typical(rows.state.cpu().numpy(), readout.config, readout.mean.cpu().numpy(),
-                       readout.scale.cpu().numpy())
-        log.info("the read-out trains on %d of %d frames (within %.0f robust spreads)",
-                 keep.sum(), keep.size, TYPICAL_SPREADS)
+        usual = typical(rows.state.cpu().numpy(), readout.config, readout.mean.cpu().numpy(),
+                        readout.scale.cpu().numpy())
+        keep = training_frames(usual, self.config.readout_frames)
+        log.info("the read-out trains on %d of %d frames (%d within %.0f robust spreads; "
+                 "readout_frames=%s)", keep.sum(), keep.size, usual.sum(), TYPICAL_SPREADS,
+                 self.config.readout_frames)
         return rows.subset(keep)
 
     def _teacher_targets(self) -> TeacherTargets:
