@@ -59,7 +59,7 @@ class DRConfig:
     low_contrast_share: float = 0.0
     """Share of views whose agent body (the ``self`` material) takes the colour of a random
     spot of the view's background crop, clipped into its colour range: camouflaged bodies,
-    the pairs a uniform draw rarely makes (0 = every colour uniform, as in the paper)."""
+    more often than a uniform draw makes them (0 = every colour uniform, as in the paper)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "light_range", tuple(float(v) for v in self.light_range))
