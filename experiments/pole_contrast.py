@@ -44,7 +44,7 @@ def lean_signals(episodes: int, lean_degrees: float, positions: list[float], nom
     env = TaskEnv("cartpole-balance")
     env.reset(seed=0)
     base = env.physics_state()
-    base[HINGE + 2:] = 0.0  # at rest
+    base[HINGE + 1:] = 0.0  # both velocities: at rest
     lean = math.radians(lean_degrees)
     rows = []
     with DRRenderer("cartpole-balance", config, 64, views=1, supersample=supersample) as renderer:

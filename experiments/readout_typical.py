@@ -22,7 +22,7 @@ import torch
 from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.agent import Agent
-from twist_models.readout import TYPICAL_SPREADS
+from twist_models.readout import typical
 
 
 @torch.no_grad()
@@ -49,13 +49,12 @@ def main() -> None:
     dataset = open_dataset(args.dataset)
     read = list(readout.config.read)
     scale, centre = readout.scale.numpy(), readout.mean.numpy()
-    errors, typical = [], []
+    errors, usual = [], []
     for index in np.flatnonzero(heldout_episodes(dataset.n_episodes, args.holdout_every))[:args.episodes]:
         episode = dataset.episode(int(index))
-        truth = episode.state[:, read]
-        errors.append(read_all(agent, episode.image[:, 0]) - truth)
-        typical.append((np.abs(truth - centre) <= TYPICAL_SPREADS * scale).all(1))
-    error, keep = np.concatenate(errors), np.concatenate(typical)
+        errors.append(read_all(agent, episode.image[:, 0]) - episode.state[:, read])
+        usual.append(typical(episode.state, readout.config, centre, scale))
+    error, keep = np.concatenate(errors), np.concatenate(usual)
 
     def rms(rows: np.ndarray) -> list[float]:
         return np.sqrt((rows.astype(np.float64) ** 2).mean(0)).round(4).tolist() if len(rows) else []

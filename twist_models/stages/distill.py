@@ -294,7 +294,7 @@ class _Run:
         # student the states alone, of D's typical frames (readout.TYPICAL_SPREADS).
         self.rows = self.targets if self.targets is not None else rows
         if self.student.readout is not None:
-            self.rows = self._typical(self.rows)
+            self.rows = self._readout_rows(self.rows)
         self.objective: nn.Module = Distillation(
             self.student, self.teacher, config,
             self.targets.scale if self.targets is not None else 1.0)
@@ -311,7 +311,7 @@ class _Run:
             _run_folder(out).write_config(config, student=student_config, teacher=teacher_path,
                                           dataset=dataset_path, world_size=world)
 
-    def _typical(self, rows: FrameRows) -> FrameRows:
+    def _readout_rows(self, rows: FrameRows) -> FrameRows:
         readout = self.student.readout
         usual = typical(rows.state.cpu().numpy(), readout.config, readout.mean.cpu().numpy(),
                         readout.scale.cpu().numpy())
