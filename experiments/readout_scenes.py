@@ -4,12 +4,12 @@ A read-out student's closed-loop return on held-out scenes is a noisy measure of
 generalises (10 episodes, one scene each, and a fall decides an episode). This script
 measures the read-out itself, offline, on the frames of D's held-out episodes (never trained
 on: every ``holdout_every``-th episode), rendered again from their stored physics states
-under each DR setting asked for: ``stored`` (D's own views, the training DR), ``heldout``
-(the procedural held-out families), ``photo`` (a folder of photographs, ``--backgrounds``),
-or ``eval``: the held-out scenes of ``twist-eval --dr heldout --seeds 0``'s episodes, the
-i-th episode's scene on D's i-th held-out episode, so that a scene's read-out error can be
-set beside the return the student scored in it. One scene per episode, as ``twist-eval``
-draws them.
+under each DR setting asked for: ``stored`` (D's own views, the training DR), ``train`` (new
+scenes of the training families), ``heldout`` (the procedural held-out families), ``photo``
+(a folder of photographs, ``--backgrounds``), or ``eval``: the held-out scenes of
+``twist-eval --dr heldout --seeds 0``'s episodes, the i-th episode's scene on D's i-th held-out
+episode, so that a scene's read-out error can be set beside the return the student scored in
+it. One scene per episode, as ``twist-eval`` draws them.
 
 Per setting it prints one JSON line: ``near_sine_rmse``, the read sine's RMS error over the
 frames within ``--near`` degrees of upright (what the teacher's actor needs; a lean's sine),
@@ -66,7 +66,8 @@ def rendered(dataset, episodes: np.ndarray, setting: str, backgrounds: str | Non
             frames.append(dataset.episode(int(index)).image[:, 0])
         return frames
     supersample = int(render_blocks(spec)[0]["supersample"])
-    config = dr_preset("heldout", backgrounds if setting == "photo" else None)
+    config = dr_preset("train" if setting == "train" else "heldout",
+                       backgrounds if setting == "photo" else None).replace(resample="episode")
     frames = []
     with DRRenderer(spec.task, config, spec.image_height, 1, supersample) as renderer:
         sampler = renderer.sampler(seed)

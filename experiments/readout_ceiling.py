@@ -1,0 +1,132 @@
+"""What does a read-out student lose with a perfect CNN? The teacher on derived velocities
+
+A read-out student (``--recipe readout``) hands the teacher's filter positions read from
+each image and velocities derived from two successive read-outs (a gain times their
+difference, :meth:`twist_models.readout.StateReadOut.state`). Even a CNN that read every
+position exactly would hand the filter those derived velocities, not the true ones. This
+measures that ceiling from the teacher alone, over the same seeded episodes as the teacher
+on the true state (the baseline measured in the same run):
+
+* ``derived``: the true positions, the velocities derived from them as the student derives
+  them (the agent bundle's pairing and gains; 0 at an episode's first step);
+* ``derived+noise:SIGMA`` (``--noise SIGMA``, repeatable): the same with Gaussian noise of
+  std ``SIGMA`` (the state's units) on every position before the derivation: a CNN's
+  read error, which the difference amplifies.
+
+It also prints, offline over D's training steps, how well each derived velocity matches the
+true one (RMSE, and the share of the true velocity's variance it explains).
+
+A ceiling near the teacher's return says the derivation costs nothing and the student's gap
+lies in its read-out; a ceiling near the student's says the derivation caps it.
+
+``python experiments/readout_ceiling.py AGENT TEACHER DATASET [--noise 0.01] [--episodes
+30] [--dr heldout]``; prints one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+
+import numpy as np
+import torch
+
+from twist_data.reader import open_dataset
+from twist_data.tasks import Step
+from twist_models.agent import Agent
+from twist_models.readout import StateReadOut
+from twist_models.stages.evaluation import EvalConfig, StateAgent, evaluate, load_agent
+
+
+class DerivedVelocityAgent:
+    """``inner`` acting on the true positions with velocities derived as ``readout`` derives
+    them, after Gaussian noise of std ``sigma`` on the positions."""
+
+    uses_images = False
+
+    def __init__(self, inner: StateAgent, readout: StateReadOut, sigma: float = 0.0,
+                 seed: int = 0) -> None:
+        self.inner, self.readout, self.sigma = inner, readout, sigma
+        self.task, self.action_repeat = inner.task, inner.action_repeat
+        self.action_dim = inner.action_dim
+        self._rng = np.random.default_rng(seed)
+        self._previous: torch.Tensor | None = None
+
+    def reset(self) -> None:
+        self.inner.reset()
+        self._previous = None
+
+    def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
+        read = list(self.readout.config.read)
+        seen = step.state[read] + self.sigma * self._rng.standard_normal(len(read))
+        positions = torch.as_tensor(seen, dtype=torch.float32)
+        previous = positions if step.is_first or self._previous is None else self._previous
+        self._previous = positions
+        with torch.no_grad():
+            state = self.readout.state(positions, previous).numpy()
+        return self.inner.act(dataclasses.replace(step, state=state), image)
+
+
+def derivation_fit(readout: StateReadOut, states: np.ndarray, is_first: np.ndarray
+                   ) -> dict[str, dict[str, float]]:
+    """Per velocity component: RMSE of the derived velocity against the true one over
+    consecutive steps (``states`` [N, S], ``is_first`` [N]), and the share of the true
+    velocity's variance it explains."""
+    positions = torch.as_tensor(states[:, list(readout.config.read)], dtype=torch.float32)
+    previous = torch.cat([positions[:1], positions[:-1]])
+    first = torch.as_tensor(is_first)
+    previous = torch.where(first[:, None], positions, previous)
+    with torch.no_grad():
+        derived = readout.state(positions, previous).numpy()
+    keep = ~is_first
+    fit = {}
+    for velocity in readout.config.velocities:
+        v = velocity[0]
+        error = derived[keep, v] - states[keep, v]
+        fit[str(v)] = {"rmse": round(float(np.sqrt((error ** 2).mean())), 4),
+                       "explained": round(float(1 - error.var() / states[keep, v].var()), 4),
+                       "spread": round(float(states[keep, v].std()), 4)}
+    return fit
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("agent", help="a read-out student's agent.pt")
+    parser.add_argument("teacher", help="its teacher's checkpoint")
+    parser.add_argument("dataset", help="the dataset D it was distilled from")
+    parser.add_argument("--noise", type=float, action="append", default=[],
+                        help="also with Gaussian noise of this std on the positions")
+    parser.add_argument("--episodes", type=int, default=30)
+    parser.add_argument("--dr", default="heldout")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    agent = Agent.load(args.agent)
+    readout = agent.student.readout
+    assert readout is not None, "pass a read-out student (twist-distil --recipe readout)"
+    teacher = load_agent(args.teacher)
+    assert isinstance(teacher, StateAgent), "pass a teacher checkpoint"
+    config = EvalConfig(task=teacher.task, dr=args.dr, episodes=args.episodes,
+                        action_repeat=teacher.action_repeat)
+
+    def mean_return(agent: object) -> float:
+        results = evaluate(agent, config, seed=args.seed)  # type: ignore[arg-type]
+        return round(float(np.mean([r.episode_return for r in results])), 1)
+
+    dataset = open_dataset(args.dataset)
+    states, first = dataset.column("state"), dataset.column("is_first").astype(bool)
+    returns = {"teacher": mean_return(teacher), "derived": mean_return(
+        DerivedVelocityAgent(teacher, readout, 0.0, args.seed))}
+    for sigma in args.noise:
+        returns[f"derived+noise:{sigma:g}"] = mean_return(
+            DerivedVelocityAgent(teacher, readout, sigma, args.seed))
+    print(json.dumps({"agent": args.agent, "task": teacher.task, "episodes": args.episodes,
+                      "dr": args.dr, "velocities": [list(v) for v in readout.config.velocities],
+                      "gains": [round(g, 4) for g in readout.config.gains],
+                      "derivation_fit": derivation_fit(readout, states, first),
+                      "mean_return": returns}))
+
+
+if __name__ == "__main__":
+    main()
