@@ -16,7 +16,7 @@ from rich.table import Table
 from twist_cli.common import err, new_app, out, run_app
 from twist_data.errors import TwistError
 from twist_data.export import export_hdf5, export_video
-from twist_data.randomisation import DR_PRESETS, dr_preset
+from twist_data.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 from twist_data.reader import open_dataset
 from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
@@ -251,7 +251,7 @@ def tasks() -> None:
 def render(
     dataset: DatasetArg,
     out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="New dataset folder to create.")],
-    dr: Annotated[str, typer.Option(help=f"DR preset: {', '.join(DR_PRESETS)}.")] = "train",
+    dr: Annotated[str, typer.Option(help=f"DR preset: {', '.join(DR_PRESETS)}.")] = TRAINING_DR,
     views: Annotated[int, typer.Option(help="K new views per step.")] = 2,
     image_size: Annotated[int | None, typer.Option(
         help="Image side in pixels (default: the dataset's).")] = None,
@@ -278,7 +278,7 @@ def record(
     out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="Dataset folder (a new shard "
                                                                "is added).")],
     episodes: Annotated[int, typer.Option(help="Number of episodes.")] = 2,
-    dr: Annotated[str, typer.Option(help=f"DR preset: {', '.join(DR_PRESETS)}.")] = "train",
+    dr: Annotated[str, typer.Option(help=f"DR preset: {', '.join(DR_PRESETS)}.")] = TRAINING_DR,
     views: Annotated[int, typer.Option(help="K views per step.")] = 2,
     image_size: Annotated[int, typer.Option(help="Image side in pixels.")] = 64,
     max_steps: Annotated[int | None, typer.Option(
@@ -307,9 +307,9 @@ def contact_sheet_cmd(
     backgrounds: BackgroundsOption = None,
 ) -> None:
     """PNG of one state: a row of train-distribution views, a row of held-out views."""
-    from twist_data.sheets import contact_sheet, write_contact_sheet
+    from twist_data.sheets import contact_sheet, default_rows, write_contact_sheet
 
-    rows = {"train": dr_preset("train"), "heldout": dr_preset("heldout")}
+    rows = default_rows()
     if backgrounds is not None:
         rows["user"] = dr_preset("heldout", backgrounds)
     sheet = contact_sheet(task, views=views, image_size=image_size, seed=seed, rows=rows)

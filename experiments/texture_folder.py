@@ -3,11 +3,11 @@
 Does the read-out student lose held-out scenes because D shows it too few backgrounds (the
 ``train`` bank holds 128 textures of three families) or too few *kinds*? This script writes
 ``--count`` textures as PNGs: the ``train`` families, as the procedural bank draws them, and
-with ``--extra`` two more families that the held-out bank does not use either:
-
-* ``lines``: thin straight segments of random colour, length and angle on a flat or cloudy
-  ground, distractors shaped like the pole itself;
-* ``blobs``: overlapping soft ellipses, smooth shapes with edges at every orientation.
+with ``--extra`` the ``wide`` bank's (:data:`twist_data.backgrounds.FAMILIES`), which adds
+two families that the held-out bank does not use either: thin line segments shaped like the
+pole itself, and soft ellipses. The ``train-wide`` DR preset draws the same families
+procedurally (``twist-data render D D2 --dr train-wide``); this folder is how they were first
+measured, and stays for any bank a user wants to edit by hand.
 
 The folder is then used as the training DR of a re-render of D's stored states
 (``twist-data render D D2 --backgrounds DIR --supersample 2``), and a student distilled from
@@ -28,38 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from twist_data.backgrounds import FAMILIES, clouds
-
-
-def lines(rng: np.random.Generator, size: int) -> np.ndarray:
-    """Thin segments of random colour, length and angle over a cloudy or flat ground."""
-    image = (clouds(rng, size) if rng.random() < 0.5
-             else np.full((size, size, 3), rng.uniform(0, 255, 3), np.uint8)).copy()
-    for _ in range(int(rng.integers(5, 40))):
-        centre = rng.uniform(0, size, 2)
-        half = rng.uniform(0.05, 0.5) * size / 2
-        angle = rng.uniform(0, np.pi)
-        offset = half * np.array([np.cos(angle), np.sin(angle)])
-        start, end = (centre - offset).astype(int), (centre + offset).astype(int)
-        colour = tuple(float(v) for v in rng.uniform(0, 255, 3))
-        cv2.line(image, tuple(start.tolist()), tuple(end.tolist()), colour,
-                 int(rng.integers(1, max(2, size // 32))), cv2.LINE_AA)
-    return image
-
-
-def blobs(rng: np.random.Generator, size: int) -> np.ndarray:
-    """Overlapping soft-edged ellipses of random colours on a random ground."""
-    image = np.full((size, size, 3), rng.uniform(0, 255, 3), np.float32)
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
-    for _ in range(int(rng.integers(4, 16))):
-        cy, cx = rng.uniform(0, 1, 2)
-        ry, rx = rng.uniform(0.03, 0.3, 2)
-        angle = rng.uniform(0, np.pi)
-        u = np.cos(angle) * (xx - cx) + np.sin(angle) * (yy - cy)
-        v = -np.sin(angle) * (xx - cx) + np.cos(angle) * (yy - cy)
-        inside = np.clip(1.5 - (u / rx) ** 2 - (v / ry) ** 2, 0, 1)[..., None]
-        image = image * (1 - inside) + inside * rng.uniform(0, 255, 3)
-    return np.clip(image, 0, 255).astype(np.uint8)
+from twist_data.backgrounds import FAMILIES
 
 
 def main() -> None:
@@ -71,9 +40,7 @@ def main() -> None:
     parser.add_argument("--extra", action="store_true", help="add the lines and blobs families")
     parser.add_argument("--seed", type=int, default=1, help="not the train bank's seed 0")
     args = parser.parse_args()
-    families = list(FAMILIES["train"].items())
-    if args.extra:
-        families += [("lines", lines), ("blobs", blobs)]
+    families = list(FAMILIES["wide" if args.extra else "train"].items())
     args.out.mkdir(parents=True, exist_ok=False)
     for i in range(args.count):
         name, make = families[i % len(families)]

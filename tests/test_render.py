@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from twist_data.backgrounds import FAMILIES, directory_bank, procedural_bank
+from twist_data.backgrounds import FAMILIES, blobs, directory_bank, procedural_bank
 from twist_data.errors import BackgroundError, ConfigError, PhysicsStateError
 from twist_data.randomisation import DR_PRESETS, DRConfig, DRSampler, dr_preset
 from twist_data.reader import open_dataset
@@ -32,18 +32,49 @@ def renderer(gl: None) -> Iterator[DRRenderer]:
 
 # -- backgrounds ----------------------------------------------------------------------------
 
-def test_train_and_heldout_banks_share_no_texture() -> None:
-    train, heldout = procedural_bank("train", 48, 32), procedural_bank("heldout", 48, 32)
-    assert not set(FAMILIES["train"]) & set(FAMILIES["heldout"])
+@pytest.mark.parametrize("source", ["train", "wide"])
+def test_training_and_heldout_banks_share_no_texture(source: str) -> None:
+    train, heldout = procedural_bank(source, 50, 32), procedural_bank("heldout", 48, 32)
+    assert not set(FAMILIES[source]) & set(FAMILIES["heldout"])
     families = {bank.source: {n.split("/")[0] for n in bank.names} for bank in (train, heldout)}
-    assert families == {"train": set(FAMILIES["train"]), "heldout": set(FAMILIES["heldout"])}
+    assert families == {source: set(FAMILIES[source]), "heldout": set(FAMILIES["heldout"])}
     a = train.textures.reshape(len(train), -1).astype(np.int16)
     b = heldout.textures.reshape(len(heldout), -1).astype(np.int16)
     nearest = np.abs(a[:, None] - b[None]).mean(-1).min()
     assert nearest > 5, "some held-out texture is (nearly) a training texture"
     # Deterministic: the bank is a pure function of its arguments, and the seed matters.
-    np.testing.assert_array_equal(procedural_bank("train", 48, 32).textures, train.textures)
-    assert procedural_bank("train", 48, 32, seed=1).digest() != train.digest()
+    np.testing.assert_array_equal(procedural_bank(source, 50, 32).textures, train.textures)
+    assert procedural_bank(source, 50, 32, seed=1).digest() != train.digest()
+
+
+def test_wide_bank_adds_two_families_to_train_in_turn() -> None:
+    assert set(FAMILIES["wide"]) == set(FAMILIES["train"]) | {"lines", "blobs"}
+    bank = procedural_bank("wide", 10, 16)
+    assert [n.split("/")[0] for n in bank.names] == list(FAMILIES["wide"]) * 2
+    preset = DR_PRESETS["train-wide"]
+    assert (preset.background, preset.background_count, preset.resample) == ("wide", 1024, "step")
+
+
+def test_blobs_computed_in_bounding_boxes_match_the_whole_image() -> None:
+    """The same draws, each ellipse's cover computed over every pixel by hand."""
+    for seed in range(4):
+        rng, size = np.random.default_rng(seed), 96
+        yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
+        image = np.empty((size, size, 3), np.float32)
+        image[:] = rng.uniform(0, 255, (1, 3))[0]
+        for _ in range(int(rng.integers(4, 16))):
+            cy, cx = rng.uniform(0, 1, 2)
+            ry, rx = rng.uniform(0.03, 0.3, 2)
+            angle = rng.uniform(0, np.pi)
+            colour = rng.uniform(0, 255, (1, 3))[0]
+            u = np.cos(angle) * (xx - cx) + np.sin(angle) * (yy - cy)
+            v = np.cos(angle) * (yy - cy) - np.sin(angle) * (xx - cx)
+            cover = np.clip(1.5 - (u / rx) ** 2 - (v / ry) ** 2, 0, 1)[..., None]
+            image = image * (1 - cover) + cover * colour
+        expected = np.clip(image, 0, 255).astype(np.uint8)
+        got = blobs(np.random.default_rng(seed), size)
+        assert np.abs(got.astype(int) - expected).max() <= 1
+        assert len(np.unique(got.reshape(-1, 3), axis=0)) > 4, "no ellipse drawn"
 
 
 def test_directory_bank_reads_images_and_video_frames(tmp_path: Path) -> None:

@@ -3,9 +3,10 @@
 The paper uses Distracting-Control video backgrounds (train vs validation videos). The machine
 this toolkit targets has no internet, so the default banks are procedural and regenerated
 bit-exactly from a seed: ``train`` draws from three texture families (fractal clouds, wave
-stripes, rotated checkers), ``heldout`` from three *other* families (Voronoi cells, radial
-rings, Mondrian rectangles). A held-out texture therefore never occurs in training, and the
-shift is one of texture statistics, not only of seeds. ``--backgrounds DIR`` swaps in any
+stripes, rotated checkers), ``wide`` from those and two more (thin line segments, soft
+ellipses), ``heldout`` from three *other* families (Voronoi cells, radial rings, Mondrian
+rectangles). A held-out texture therefore never occurs in training, and the shift is one of
+texture statistics, not only of seeds. ``--backgrounds DIR`` swaps in any
 folder of photos, or video files whose frames are used.
 """
 
@@ -115,9 +116,52 @@ def mondrian(rng: np.random.Generator, size: int) -> np.ndarray:
     return image
 
 
-#: Texture families of each procedural bank. The two sets share no family.
+def lines(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Thin anti-aliased segments of random colour, length, width and angle over a cloudy or
+    flat ground: distractors shaped like a pole or a string."""
+    ground = (clouds(rng, size) if rng.random() < 0.5
+              else np.full((size, size, 3), _palette(rng, 1)[0], np.uint8))
+    image = np.ascontiguousarray(ground)
+    for _ in range(int(rng.integers(5, 40))):
+        centre = rng.uniform(0, size, 2)
+        angle, half = rng.uniform(0, np.pi), rng.uniform(0.025, 0.25) * size
+        offset = half * np.array([np.cos(angle), np.sin(angle)])
+        ends = [tuple(int(v) for v in centre - offset), tuple(int(v) for v in centre + offset)]
+        colour = tuple(float(v) for v in _palette(rng, 1)[0])
+        cv2.line(image, ends[0], ends[1], colour, int(rng.integers(1, max(2, size // 32))),
+                 cv2.LINE_AA)
+    return image
+
+
+def blobs(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Overlapping soft-edged rotated ellipses of random colours on a random ground: smooth
+    shapes with edges at every orientation."""
+    yy, xx = _grid(size)
+    image = np.empty((size, size, 3), np.float32)
+    image[:] = _palette(rng, 1)[0]
+    for _ in range(int(rng.integers(4, 16))):
+        cy, cx = rng.uniform(0, 1, 2)
+        ry, rx = rng.uniform(0.03, 0.3, 2)
+        angle = rng.uniform(0, np.pi)
+        colour = _palette(rng, 1)[0]
+        # Cover is 0 beyond sqrt(1.5) radii: only the ellipse's bounding box is computed.
+        reach = np.sqrt(1.5) * max(rx, ry)
+        rows = slice(max(0, int((cy - reach) * size)), min(size, int((cy + reach) * size) + 2))
+        cols = slice(max(0, int((cx - reach) * size)), min(size, int((cx + reach) * size) + 2))
+        dy, dx = yy[rows, cols] - cy, xx[rows, cols] - cx
+        u = np.cos(angle) * dx + np.sin(angle) * dy
+        v = np.cos(angle) * dy - np.sin(angle) * dx
+        cover = np.clip(1.5 - (u / rx) ** 2 - (v / ry) ** 2, 0, 1)[..., None]
+        image[rows, cols] = image[rows, cols] * (1 - cover) + cover * colour
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+#: Texture families of each procedural bank. ``wide`` is ``train`` plus two families that
+#: neither ``train`` nor ``heldout`` has; ``heldout`` shares no family with either.
 FAMILIES: dict[str, dict[str, Generator]] = {
     "train": {"clouds": clouds, "stripes": stripes, "checker": checker},
+    "wide": {"clouds": clouds, "stripes": stripes, "checker": checker, "lines": lines,
+             "blobs": blobs},
     "heldout": {"cells": cells, "rings": rings, "mondrian": mondrian},
 }
 
@@ -127,7 +171,7 @@ class BackgroundBank:
     """A fixed, indexable set of square background textures; ``dr/background`` indexes it."""
 
     source: str
-    """``train``, ``heldout``, or a directory path."""
+    """``train``, ``wide``, ``heldout``, or a directory path."""
     textures: np.ndarray
     """[N, S, S, 3] uint8."""
     names: tuple[str, ...]
@@ -152,7 +196,8 @@ class BackgroundBank:
 
 
 def procedural_bank(source: str, count: int, size: int, seed: int = 0) -> BackgroundBank:
-    """``count`` textures of ``size``² pixels from the ``train`` or ``heldout`` families."""
+    """``count`` textures of ``size``² pixels from the families of ``source`` (:data:`FAMILIES`),
+    taken in turn."""
     if source not in FAMILIES:
         raise ConfigError(f"procedural background source must be one of {sorted(FAMILIES)}, "
                           f"got {source!r}")

@@ -9,12 +9,17 @@ import cv2
 import numpy as np
 
 from twist_data.errors import ConfigError
-from twist_data.randomisation import DRConfig, dr_preset
+from twist_data.randomisation import TRAINING_DR, DRConfig, dr_preset
 from twist_data.render import DRRenderer
 from twist_data.rollout import random_policy
 from twist_data.tasks import TaskEnv
 
 _LABEL_WIDTH = 72
+
+
+def default_rows() -> dict[str, DRConfig]:
+    """A contact sheet's rows unless told otherwise: training and held-out scenes."""
+    return {"train": dr_preset(TRAINING_DR), "heldout": dr_preset("heldout")}
 
 
 def contact_sheet(task: str, views: int = 6, image_size: int = 64, warmup_steps: int = 40,
@@ -23,12 +28,12 @@ def contact_sheet(task: str, views: int = 6, image_size: int = 64, warmup_steps:
     """[rows * S, label + views * S, 3] RGB: each row renders the same state under one config.
 
     The state is reached by ``warmup_steps`` random actions from ``reset(seed)`` so that the
-    agent is in a typical, not an initial, pose. ``rows`` defaults to the ``train`` and
-    ``heldout`` presets.
+    agent is in a typical, not an initial, pose. ``rows`` defaults to the training preset
+    (:data:`~twist_data.randomisation.TRAINING_DR`) and ``heldout``.
     """
     if warmup_steps < 0 or scale < 1:
         raise ConfigError(f"warmup_steps must be >= 0 and scale >= 1, got {warmup_steps}, {scale}")
-    rows = rows or {"train": dr_preset("train"), "heldout": dr_preset("heldout")}
+    rows = rows or default_rows()
     env = TaskEnv(task, seed=seed)
     step = env.reset(seed=seed)
     policy = random_policy(env.action_dim, seed)

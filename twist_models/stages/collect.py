@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from twist_data.errors import ConfigError, TwistError
-from twist_data.randomisation import DR_PRESETS, dr_preset
+from twist_data.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 from twist_data.reader import ShardReader, open_dataset
 from twist_data.render import DRRenderer, FrameRenderer
 from twist_data.render_process import RenderProcess
@@ -135,8 +135,11 @@ class CollectConfig:
     supersample: int = 1
     """Render at this multiple of ``image_size`` and area-downsample: anti-aliasing, without
     which thin geoms (cartpole's pole and rail, the cup's string) break into stray pixels."""
-    dr: str = "train"
-    """DR preset of the renders (``twist-data`` lists them)."""
+    dr: str = TRAINING_DR
+    """DR preset of the renders (``twist-data`` lists them). ``train-wide`` (five texture
+    families) rather than the paper-like ``train`` (three): its students read backgrounds of
+    kinds they never saw better (docs/experiments.md, "Does a wider bank close cup-catch's
+    gap?")."""
     backgrounds: str | None = None
     """Folder of background images/videos replacing the procedural bank; None: procedural."""
     action_repeat: int = DEFAULT_ACTION_REPEAT
