@@ -19,14 +19,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import torch
-from readout_scenes import read_positions, rendered
 
 from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.agent import Agent
+
+# The renders and the read-out are readout_scenes.py's, beside this file, wherever it is run
+# from.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from readout_scenes import read_positions, rendered
 
 
 def main() -> None:
