@@ -74,11 +74,8 @@ def derivation_fit(readout: StateReadOut, states: np.ndarray, is_first: np.ndarr
     consecutive steps (``states`` [N, S], ``is_first`` [N]), and the share of the true
     velocity's variance it explains."""
     positions = torch.as_tensor(states[:, list(readout.config.read)], dtype=torch.float32)
-    previous = torch.cat([positions[:1], positions[:-1]])
-    first = torch.as_tensor(is_first)
-    previous = torch.where(first[:, None], positions, previous)
     with torch.no_grad():
-        derived = readout.state(positions, previous).numpy()
+        derived = readout.window_state(positions[None], torch.as_tensor(is_first)[None])[0].numpy()
     keep = ~is_first
     fit = {}
     for velocity in readout.config.velocities:

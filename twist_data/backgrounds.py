@@ -158,10 +158,10 @@ def blobs(rng: np.random.Generator, size: int) -> np.ndarray:
 
 #: Texture families of each procedural bank. ``wide`` is ``train`` plus two families that
 #: neither ``train`` nor ``heldout`` has; ``heldout`` shares no family with either.
+_TRAIN: dict[str, Generator] = {"clouds": clouds, "stripes": stripes, "checker": checker}
 FAMILIES: dict[str, dict[str, Generator]] = {
-    "train": {"clouds": clouds, "stripes": stripes, "checker": checker},
-    "wide": {"clouds": clouds, "stripes": stripes, "checker": checker, "lines": lines,
-             "blobs": blobs},
+    "train": _TRAIN,
+    "wide": {**_TRAIN, "lines": lines, "blobs": blobs},
     "heldout": {"cells": cells, "rings": rings, "mondrian": mondrian},
 }
 

@@ -12,7 +12,7 @@ import dataclasses
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import numpy as np
 
@@ -65,7 +65,7 @@ class DRConfig:
         object.__setattr__(self, "light_range", tuple(float(v) for v in self.light_range))
         object.__setattr__(self, "friction_range", tuple(float(v) for v in self.friction_range))
         object.__setattr__(self, "mass_range", tuple(float(v) for v in self.mass_range))
-        if self.background not in ("train", "wide", "heldout", "directory", "none"):
+        if self.background not in get_args(BackgroundSource):
             raise ConfigError(f"background must be train, wide, heldout, directory or none, "
                               f"got {self.background!r}")
         if (self.background == "directory") != bool(self.background_dir):
