@@ -14,13 +14,17 @@ B=16, L=50, sizes of ``--preset`` (default paper = DreamerV2 DMC), random data (
 depend on values). Each figure is the median over ``--repeats`` updates after one warm-up.
 Prints one JSON line per part.
 
-``--compile`` adds the world-model update of the teacher part and the student update with
-their loss (forward, and through it the backward) wrapped in ``torch.compile``, on copies of
-the same weights; the first call's compile time is reported apart (``compile_s``) and
-``compile_speedup`` is the eager median over the compiled one, both from the same run.
+``--compile`` adds, on copies of the same weights: the teacher's world-model update with its
+loss (forward, and through it the backward) in ``torch.compile``; the teacher's whole update
+as the collector compiles it (``Dreamer.compile_update``); the student update with its loss
+compiled. Each variant's first two calls are reported apart (``<name>_compile_s``) and
+``<name>_speedup`` is the eager median over the compiled one, both from the same run; a
+compiler failure is reported as ``<name>_error``. ``--compile-mode reduce-overhead`` adds
+CUDA graphs on a GPU.
 
     python benchmarks/world_model_update.py [--part teacher|student|all] [--preset paper]
         [--repeats 5] [--device cpu|cuda] [--imag-starts N] [--compile]
+        [--compile-mode default|reduce-overhead|max-autotune-no-cudagraphs]
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import json
 import os
 import statistics
 import time
+import traceback
 from collections.abc import Callable
 
 import torch
@@ -129,17 +134,36 @@ def matching_loss(deter: torch.Tensor, post: torch.Tensor, prior: torch.Tensor,
 
 def compiled_variant(update: Callable[[], None], repeats: int, device: torch.device
                      ) -> tuple[list[float], float]:
-    """Samples of a compiled update after its first call, and that first call's seconds."""
+    """Samples of a compiled update after its first call, and that first call's seconds.
+    CUDA graphs (mode reduce-overhead) record on the second and third calls, so two calls
+    count as compilation there."""
     start = time.perf_counter()
+    update()
     update()
     if device.type == "cuda":
         torch.cuda.synchronize()
-    return median_time(update, repeats, device), time.perf_counter() - start
+    first = time.perf_counter() - start
+    return median_time(update, repeats, device), first
+
+
+def try_compiled(samples: dict[str, list[float]], extra: dict[str, object], name: str,
+                 update: Callable[[], None], repeats: int, device: torch.device,
+                 eager: str) -> None:
+    """Time ``update`` as ``samples[name]``; a compiler failure is reported, not raised."""
+    try:
+        samples[name], first = compiled_variant(update, repeats, device)
+    except Exception as error:  # the JSON line reports any compiler failure
+        extra[f"{name}_error"] = f"{type(error).__name__}: {str(error)[:300]}"
+        traceback.print_exc()
+        return
+    extra[f"{name}_compile_s"] = round(first, 1)
+    extra[f"{name}_speedup"] = round(statistics.median(samples[eager])
+                                     / statistics.median(samples[name]), 2)
 
 
 def bench_teacher(preset: str, repeats: int, device: torch.device,
-                  imag_starts: int | None = None, compile_too: bool = False
-                  ) -> dict[str, object]:
+                  imag_starts: int | None = None, compile_too: bool = False,
+                  compile_mode: str = "default", whole_only: bool = False) -> dict[str, object]:
     torch.manual_seed(0)
     config = teacher_preset(preset, STATE, ACTIONS)
     if imag_starts is not None:
@@ -178,22 +202,26 @@ def bench_teacher(preset: str, repeats: int, device: torch.device,
                "teacher_update_s": median_time(lambda: teacher.train_step(batch), repeats,
                                                device)}
     extra: dict[str, object] = {}
-    if compile_too:
+    if compile_too and not whole_only:
         twin = copy.deepcopy(teacher)
         twin_opt = torch.optim.AdamW(twin.world_model.parameters(), wm.model_lr, eps=1e-5)
-        compiled_loss = torch.compile(twin.world_model.loss)
+        compiled_loss = torch.compile(twin.world_model.loss, mode=compile_mode)
 
         def world_model_compiled() -> None:
+            torch.compiler.cudagraph_mark_step_begin()
             loss, _, _ = compiled_loss(batch)
             twin_opt.zero_grad(set_to_none=True)
             loss.backward()
             twin_opt.step()
 
-        samples["world_model_compiled_s"], first = compiled_variant(world_model_compiled,
-                                                                    repeats, device)
-        extra = {"compile_s": round(first, 1), "compile_speedup": round(
-            statistics.median(samples["world_model_s"])
-            / statistics.median(samples["world_model_compiled_s"]), 2)}
+        try_compiled(samples, extra, "world_model_compiled_s", world_model_compiled, repeats,
+                     device, "world_model_s")
+    if compile_too:
+        # The whole update as the collector compiles it (Dreamer.compile_update).
+        whole = copy.deepcopy(teacher)
+        whole.compile_update(compile_mode)
+        try_compiled(samples, extra, "teacher_compiled_s", lambda: whole.train_step(batch),
+                     repeats, device, "teacher_update_s")
     medians = {k: statistics.median(v) for k, v in samples.items()}
     return {"samples": samples, "medians": medians, "figure": "teacher_update_s", **extra,
             "imag_starts": config.actor_critic.imag_starts or B * L,
@@ -204,8 +232,8 @@ def bench_teacher(preset: str, repeats: int, device: torch.device,
 
 
 def bench_student(preset: str, repeats: int, device: torch.device,
-                  imag_starts: int | None = None, compile_too: bool = False
-                  ) -> dict[str, object]:
+                  imag_starts: int | None = None, compile_too: bool = False,
+                  compile_mode: str = "default", whole_only: bool = False) -> dict[str, object]:
     torch.manual_seed(0)
     base = teacher_preset(preset, STATE, ACTIONS).world_model
     config = WorldModelConfig(obs="image", state_dim=STATE, action_dim=ACTIONS, rssm=base.rssm,
@@ -248,19 +276,17 @@ def bench_student(preset: str, repeats: int, device: torch.device,
         twin = copy.deepcopy(student)
         twin_opt = torch.optim.AdamW([*twin.encoder.parameters(), *twin.rssm.parameters()],
                                      config.model_lr, eps=1e-5)
-        compiled_loss = torch.compile(student_loss)
+        compiled_loss = torch.compile(student_loss, mode=compile_mode)
 
         def student_compiled() -> None:
+            torch.compiler.cudagraph_mark_step_begin()
             loss = compiled_loss(twin)
             twin_opt.zero_grad(set_to_none=True)
             loss.backward()
             twin_opt.step()
 
-        samples["student_compiled_s"], first = compiled_variant(student_compiled, repeats,
-                                                                device)
-        extra = {"compile_s": round(first, 1), "compile_speedup": round(
-            statistics.median(samples["student_update_s"])
-            / statistics.median(samples["student_compiled_s"]), 2)}
+        try_compiled(samples, extra, "student_compiled_s", student_compiled, repeats, device,
+                     "student_update_s")
     medians = {k: statistics.median(v) for k, v in samples.items()}
     return {"samples": samples, "medians": medians, "figure": "student_update_s", **extra,
             "speedup_vs_naive": round(medians["naive_student_s"]
@@ -277,12 +303,18 @@ def main() -> None:
                         help="override the preset's imagination starts (teacher part)")
     parser.add_argument("--compile", action="store_true",
                         help="also time the updates with their loss in torch.compile")
+    parser.add_argument("--compile-mode", default="default",
+                        choices=["default", "reduce-overhead", "max-autotune-no-cudagraphs"],
+                        help="torch.compile's mode (reduce-overhead: CUDA graphs)")
+    parser.add_argument("--whole-only", action="store_true",
+                        help="of the teacher's compiled variants, only the whole update")
     args = parser.parse_args()
     device = torch.device(args.device)
     parts = ["teacher", "student"] if args.part == "all" else [args.part]
     for part in parts:
         result = {"teacher": bench_teacher, "student": bench_student}[part](
-            args.preset, args.repeats, device, args.imag_starts, args.compile)
+            args.preset, args.repeats, device, args.imag_starts, args.compile, args.compile_mode,
+            args.whole_only)
         medians = result.pop("medians")
         samples = result.pop("samples")
         figure = result.pop("figure")
@@ -292,6 +324,7 @@ def main() -> None:
             "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
             "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
             **{k: round(v, 4) for k, v in medians.items()}, **result,
+            "compile_mode": args.compile_mode if args.compile else None,
             "target_s": target, "meets_target": None if target is None
             else medians[figure] <= target,
             "samples": {k: [round(x, 4) for x in v] for k, v in samples.items()},

@@ -14,7 +14,14 @@
 # plan for a 25-minute lease that no GPU has measured yet: the first run's timings.json is
 # the measurement.
 set -euo pipefail
-. "$(dirname "$0")/bootstrap.sh"
+if command -v twist-collect >/dev/null 2>&1; then
+  # Already installed (an active environment, or a GPU image with the package on PATH):
+  # no virtual environment, whose pinned CPU torch would replace the image's CUDA build.
+  export MUJOCO_GL="${MUJOCO_GL:-egl}"
+  cd "$(dirname "$0")/.."
+else
+  . "$(dirname "$0")/bootstrap.sh"
+fi
 OUT="${1:-runs/gpu}"
 TASK="${TASK:-cartpole-balance}"
 PRESET="${PRESET:-paper}"
@@ -27,6 +34,10 @@ if [[ "$PRESET" != tiny ]]; then
 fi
 STEPS=()
 if [[ -n "${STUDENT_STEPS:-}" || "$PRESET" != tiny ]]; then STEPS=(--steps "${STUDENT_STEPS:-10000}"); fi
+# On a GPU the window objective runs compiled with CUDA graphs (the collector's teacher does
+# so by itself there): its update measured 14x eager's on an H200 (docs/performance.md).
+DISTIL_COMPILE=()
+if [[ "$DEVICE" == cuda* ]]; then DISTIL_COMPILE=(--set compile=true); fi
 EVAL=(--episodes "${EVAL_EPISODES:-10}")
 if [[ "$PRESET" == tiny ]]; then EVAL=(--episodes 2 --max-steps 20); fi
 
@@ -45,7 +56,8 @@ stage collect twist-collect --task "$TASK" --preset "$PRESET" --device "$DEVICE"
 RESUME=()
 if [[ -f "$OUT/student/config.json" ]]; then RESUME=(--resume); fi
 stage distil twist-distil --dataset "$OUT/dataset" --out "$OUT/student" --preset "$PRESET" \
-      --recipe "${RECIPE:-dense}" --device "$DEVICE" --quiet "${STEPS[@]}" "${RESUME[@]}"
+      --recipe "${RECIPE:-dense}" --device "$DEVICE" --quiet "${STEPS[@]}" \
+      "${DISTIL_COMPILE[@]}" "${RESUME[@]}"
 RESUME=()
 if [[ -f "$OUT/eval/episodes.csv" ]]; then RESUME=(--resume); fi
 stage eval twist-eval --agent "oracle=$OUT/dataset/collect/collect-000/teacher.pt" \

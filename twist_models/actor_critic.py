@@ -105,6 +105,7 @@ class ActorCritic(nn.Module):
         self.register_buffer("updates", torch.zeros((), dtype=torch.int64))
         # EMA of the (5%, 95%) quantiles of imagined returns, for return_norm.
         self.register_buffer("return_range", torch.zeros(2))
+        self.compile_imagination(None)
 
     def _load_from_state_dict(self, state_dict: dict, prefix: str, *args, **kwargs) -> None:
         # Checkpoints written before return normalisation existed lack its statistics.
@@ -139,10 +140,10 @@ class ActorCritic(nn.Module):
             p.requires_grad_(False)
         try:
             if c.actor_grad == "dynamics":
-                feature, policies, _ = self._imagine(rssm, start, differentiable=True)
+                feature, entropy, _ = self._imagine_fn(rssm, start, True)
             else:
                 with torch.no_grad():
-                    feature, _, actions = self._imagine(rssm, start, differentiable=False)
+                    feature, _, actions = self._imagine_fn(rssm, start, False)
             # Heads run on the contiguous [N, H+1, F] layout (a transposed input sends
             # nn.Linear down a slow batched-matmul path); their [N, H+1] outputs go time first.
             reward = world_model.reward(feature).T
@@ -155,7 +156,6 @@ class ActorCritic(nn.Module):
             weight = weight.detach()
             scale = self._return_scale(returns.detach())
             if c.actor_grad == "dynamics":
-                entropy = torch.stack([p.entropy().sum(-1) for p in policies], 0)  # [H, N]
                 objective = returns / scale
             else:
                 policy = self.actor(feature[:, :-1])  # one batched pass over [N, H, F]
@@ -179,22 +179,28 @@ class ActorCritic(nn.Module):
                 "actor_entropy": entropy.mean().detach(),
                 "imagined_reward": reward[1:].mean().detach()}
 
+    def compile_imagination(self, mode: str | None) -> None:
+        """Roll out through ``torch.compile`` in ``mode`` (None: eager)."""
+        self._imagine_fn = self._imagine if mode is None else torch.compile(self._imagine,
+                                                                            mode=mode)
+
     def _imagine(self, rssm: RSSM, start: State, differentiable: bool
-                 ) -> tuple[torch.Tensor, list[TruncatedNormal], torch.Tensor]:
-        """Roll the actor out in the model: (features [N, H+1, F], the actor's distribution
-        at each of the H decision states, actions [N, H, A])."""
-        policies: list[TruncatedNormal] = []
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Roll the actor out in the model: (features [N, H+1, F], the actor's entropy at
+        each of the H decision states [H, N], actions [N, H, A])."""
+        entropies: list[torch.Tensor] = []
 
         def act(feature: torch.Tensor) -> torch.Tensor:
             # imagine() feeds the actor detached features, so these distributions are exactly
-            # those DreamerV2 recomputes for the entropy bonus: keeping them saves a second
+            # those DreamerV2 recomputes for the entropy bonus: taking it here saves a second
             # actor pass over every imagined state.
-            policies.append(self.actor(feature))
-            action = policies[-1].rsample()
+            policy = self.actor(feature)
+            entropies.append(policy.entropy().sum(-1))
+            action = policy.rsample()
             return action if differentiable else action.detach()
 
         states, actions = rssm.imagine(start, self.config.horizon, policy=act)
-        return rssm.feature(states), policies, actions
+        return rssm.feature(states), torch.stack(entropies, 0), actions
 
     def _return_scale(self, returns: torch.Tensor) -> torch.Tensor | float:
         """max(1, EMA of the 5-95% percentile range of ``returns``) with return_norm, else 1."""

@@ -26,6 +26,18 @@ class Dreamer(nn.Module):
                                            eps=config.optim.eps,
                                            weight_decay=config.optim.weight_decay)
         self.register_buffer("step", torch.zeros((), dtype=torch.int64))
+        self.compiled_mode: str | None = None
+        self._model_loss = self.world_model.loss
+
+    def compile_update(self, mode: str | None) -> None:
+        """Run the world-model loss and the imagined rollout through ``torch.compile`` in
+        ``mode`` (``reduce-overhead``: also captured as CUDA graphs); None: eager, the
+        reference. The optimiser steps and the actor-critic's return and loss arithmetic
+        (a few large kernels) stay eager."""
+        self.compiled_mode = mode
+        self._model_loss = (self.world_model.loss if mode is None
+                            else torch.compile(self.world_model.loss, mode=mode))
+        self.actor_critic.compile_imagination(mode)
 
     def to_device(self, device: torch.device | str) -> Dreamer:
         """Move weights and optimiser moments to ``device``."""
@@ -43,14 +55,19 @@ class Dreamer(nn.Module):
         """Update the world model on ``batch`` ({k: [B, T, ...]}: state or image, action,
         reward, is_first, ...), then, with ``behaviour``, the actor-critic from imagination
         started at the posterior states. Returns scalar metrics."""
-        loss, post, metrics = self.world_model.loss(batch)
+        if self.compiled_mode == "reduce-overhead":
+            torch.compiler.cudagraph_mark_step_begin()
+        loss, post, metrics = self._model_loss(batch)
         self.model_opt.zero_grad(set_to_none=True)
         loss.backward()
         metrics["model_grad_norm"] = nn.utils.clip_grad_norm_(self.world_model.parameters(),
                                                               self.config.optim.grad_clip)
         self.model_opt.step()
+        # A CUDA graph's outputs live in memory its next replay overwrites: what outlives
+        # this step's graphs is copied (copies queue on the stream, so nothing waits here).
+        metrics = {k: v.detach().clone() for k, v in metrics.items()}
         if behaviour:
-            start = {k: v.detach().flatten(0, 1) for k, v in post.items()}
+            start = {k: v.detach().flatten(0, 1).clone() for k, v in post.items()}
             metrics.update(self.actor_critic.train_step(self.world_model, start))
         self.step += 1
         return {k: float(v) for k, v in metrics.items()}

@@ -61,13 +61,14 @@ from twist_models.config import (
     TeacherConfig,
     from_json,
     replace_fields,
+    require_choice,
     require_non_negative,
     require_positive,
     teacher_preset,
     to_json,
 )
 from twist_models.curves import plot_learning_curves
-from twist_models.device import resolve_device
+from twist_models.device import COMPILE_SETTINGS, compile_mode, resolve_device
 from twist_models.networks import single_threaded
 from twist_models.policies import Pushes, student_policy, teacher_policy
 from twist_models.stages.runlog import Board, RunFolder, append_csv, prepare_output
@@ -205,9 +206,14 @@ class CollectConfig:
     """The teacher's whole config, its sizes included; None: the ``model`` preset's for the
     task. ``--set teacher.<field>=...`` (e.g. ``teacher.world_model.rssm.deter=256``) starts
     it from that preset (:meth:`with_settings`). The override fields above apply on top."""
+    compile: str = "auto"
+    """Teacher updates through ``torch.compile`` (``auto``: with CUDA graphs on a CUDA device,
+    eager on a CPU, where it did not pay; ``on``; ``off``: eager, the reference;
+    :func:`~twist_models.device.compile_mode`)."""
 
     def __post_init__(self) -> None:
         task_spec(self.task)  # raises UnknownTaskError naming the valid tasks
+        require_choice(self, "compile", COMPILE_SETTINGS)
         if self.model not in PRESETS:
             raise ConfigError(f"unknown model preset {self.model!r}; valid: {', '.join(PRESETS)}")
         if self.dr not in DR_PRESETS:
@@ -534,6 +540,7 @@ class _Run:
             torch.manual_seed(self.seed)
             self.teacher = Teacher(teacher_config)
         self.teacher.to_device(self.device)
+        self.teacher.compile_update(compile_mode(self.config.compile, self.device))
 
     @property
     def frames(self) -> int:
@@ -622,7 +629,7 @@ class _Run:
             self._evaluate()
         teacher, checkpoint = load_teacher(self.folder / BEST_TEACHER, self.env.state_dim,
                                            self.env.action_dim)
-        self.teacher = teacher.to_device(self.device)
+        self.teacher = teacher.to_device(self.device)  # frozen: it only acts from here on
         self.frozen_from = {"frames": checkpoint.counters["frames"],
                             "updates": int(teacher.step),
                             "eval_return": checkpoint.extra["eval_return"]}

@@ -61,7 +61,7 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import plot_agreement
-from twist_models.device import resolve_device
+from twist_models.device import compile_mode, resolve_device
 from twist_models.distillation import (
     KEYS,
     DistilConfig,
@@ -302,8 +302,10 @@ class _Run:
             self.objective = nn.parallel.DistributedDataParallel(
                 self.objective, device_ids=[device.index] if device.type == "cuda" else None)
         # Compiled for training only: evaluation runs other shapes and would recompile.
-        self.train_objective: Callable[..., Any] = (torch.compile(self.objective)
-                                                    if config.compile else self.objective)
+        self.compiled_mode = compile_mode("on" if config.compile else "off", device)
+        self.train_objective: Callable[..., Any] = (
+            self.objective if self.compiled_mode is None
+            else torch.compile(self.objective, mode=self.compiled_mode))
         self.heldout = self._heldout_batch()
         self.heldout_last: dict[str, float] = {}
         self.board = Board(out) if self.writes else None
@@ -418,6 +420,8 @@ class _Run:
             tick = time.perf_counter()
             batch = self._window_batch(next(windows))
             waited = time.perf_counter() - tick
+            if self.compiled_mode == "reduce-overhead":
+                torch.compiler.cudagraph_mark_step_begin()
             loss, terms = self.train_objective(batch)
             self.optimiser.zero_grad(set_to_none=True)
             loss.backward()
