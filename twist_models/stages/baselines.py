@@ -42,10 +42,11 @@ from twist_models.config import (
     StudentConfig,
     from_json,
     image_dreamer_preset,
+    require_choice,
     require_non_negative,
     require_positive,
 )
-from twist_models.device import resolve_device
+from twist_models.device import COMPILE_SETTINGS, compile_mode, resolve_device
 from twist_models.dreamer import Dreamer
 from twist_models.stages.runlog import Board, RunFolder, append_csv
 
@@ -89,8 +90,13 @@ class BaselineConfig:
     """Updates between writes of ``latest.pt``."""
     workers: int = 0
     """DataLoader processes (0: decode in the training process)."""
+    compile: str = "off"
+    """Updates through ``torch.compile`` as the collector's teacher
+    (:func:`~twist_models.device.compile_mode`). ``off`` by default, unlike the collector's
+    ``auto``: an image world model compiled on a GPU has not been run."""
 
     def __post_init__(self) -> None:
+        require_choice(self, "compile", COMPILE_SETTINGS)
         if self.kind not in KINDS:
             raise ConfigError(f"unknown baseline {self.kind!r}; valid: {', '.join(KINDS)}")
         if self.model not in PRESETS:
@@ -140,7 +146,7 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
     dreamer_config = dataclasses.replace(dreamer_config, actor_critic=dataclasses.replace(
         behaviour, imag_starts=config.imag_starts))
     folder = RunFolder(out, "baseline", BaselineError, "a baseline run")
-    folder.open(config, resume, ("steps",))
+    folder.open(config, resume, ("steps", "compile"), "--steps and --set compile")
     latest = folder.latest
     torch.manual_seed(config.seed)
     model = Dreamer(dreamer_config)
@@ -148,6 +154,7 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
         checkpoint = read_checkpoint(latest, kind="dreamer")
         restore(checkpoint, model, dreamer_config, model.optimisers())
     model.to_device(device)
+    model.compile_update(compile_mode(config.compile, torch.device(device)))
     folder.write_config(config, dreamer=dreamer_config, dataset=Path(dataset))
     sampler = SamplerConfig(length=config.length, batch_size=config.batch_size,
                             view=config.view, keys=KEYS, holdout_every=config.holdout_every,

@@ -472,8 +472,9 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     if path.exists() and not resume:
         raise CollectError(f"shard {path.name!r} already exists in {str(out)!r}; pass --resume "
                            "to continue it, or --shard to add another")
+    # compile is how, not what, the run computes: a resumed run may move to another device.
     extendable = ("frames", "learn_frames", "freeze_best", "frozen_noise", "push_every",
-                  "push_steps", "student")
+                  "push_steps", "student", "compile")
     # The shard, not the config, marks an existing run here (checked above).
     if resume:
         _run_folder(folder).open(config, True, extendable,

@@ -230,7 +230,8 @@ def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resum
                and from_json(StudentConfig, before.get("student", {})) != student else [])
     # frame_steps may grow on resume: the first stage's loss still falls where a preset stops
     # it, and continuing costs only the added updates (docs/experiments.md).
-    folder.open(config, resume, ("steps", "frame_steps"), "--steps and --set frame_steps",
+    folder.open(config, resume, ("steps", "frame_steps", "compile"),
+                "--steps and --set frame_steps, compile",
                 also=changed)
 
 
