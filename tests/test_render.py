@@ -11,7 +11,14 @@ import cv2
 import numpy as np
 import pytest
 
-from twist_data.backgrounds import FAMILIES, blobs, directory_bank, procedural_bank
+from twist_data.backgrounds import (
+    FAMILIES,
+    blobs,
+    clouds,
+    directory_bank,
+    leaves,
+    procedural_bank,
+)
 from twist_data.errors import BackgroundError, ConfigError, PhysicsStateError
 from twist_data.randomisation import DR_PRESETS, DRConfig, DRSampler, dr_preset
 from twist_data.reader import open_dataset
@@ -32,7 +39,7 @@ def renderer(gl: None) -> Iterator[DRRenderer]:
 
 # -- backgrounds ----------------------------------------------------------------------------
 
-@pytest.mark.parametrize("source", ["train", "wide"])
+@pytest.mark.parametrize("source", ["train", "wide", "leaves"])
 def test_training_and_heldout_banks_share_no_texture(source: str) -> None:
     train, heldout = procedural_bank(source, 50, 32), procedural_bank("heldout", 48, 32)
     assert not set(FAMILIES[source]) & set(FAMILIES["heldout"])
@@ -53,6 +60,37 @@ def test_wide_bank_adds_two_families_to_train_in_turn() -> None:
     assert [n.split("/")[0] for n in bank.names] == list(FAMILIES["wide"]) * 2
     preset = DR_PRESETS["train-wide"]
     assert (preset.background, preset.background_count, preset.resample) == ("wide", 1024, "step")
+
+
+def test_leaves_bank_adds_dead_leaves_to_wide_in_turn() -> None:
+    assert set(FAMILIES["leaves"]) == set(FAMILIES["wide"]) | {"leaves"}
+    bank = procedural_bank("leaves", 12, 16)
+    assert [n.split("/")[0] for n in bank.names] == list(FAMILIES["leaves"]) * 2
+    preset = DR_PRESETS["train-leaves"]
+    assert (preset.background, preset.background_count, preset.resample) == ("leaves", 1024,
+                                                                              "step")
+
+
+def _spectrum_slope(image: np.ndarray) -> float:
+    """Slope of log radially averaged amplitude against log spatial frequency."""
+    grey = image.astype(np.float64).mean(-1)
+    amplitude = np.abs(np.fft.fft2(grey - grey.mean()))
+    k = np.fft.fftfreq(len(grey)) * len(grey)
+    radius = np.hypot(k[:, None], k[None, :]).astype(int)
+    radial = np.bincount(radius.ravel(), amplitude.ravel()) / np.maximum(
+        np.bincount(radius.ravel()), 1)
+    freqs = np.arange(4, len(grey) // 2)
+    return float(np.polyfit(np.log(freqs), np.log(radial[freqs]), 1)[0])
+
+
+def test_dead_leaves_have_the_amplitude_spectrum_of_photographs() -> None:
+    """Photographs' amplitude falls about as 1/f (slopes -1.1 to -1.5 measured on eight at
+    256 px, docs/experiments.md); smooth textures fall faster (clouds about -1.8). Leaves
+    that leave the ground bare, or blur too much, fall as fast as clouds."""
+    slopes = [_spectrum_slope(leaves(np.random.default_rng([2, i]), 128)) for i in range(8)]
+    assert -1.6 < float(np.median(slopes)) < -1.0, slopes
+    smooth = [_spectrum_slope(clouds(np.random.default_rng([2, i]), 128)) for i in range(8)]
+    assert float(np.median(smooth)) < -1.6, smooth
 
 
 def test_blobs_computed_in_bounding_boxes_match_the_whole_image() -> None:

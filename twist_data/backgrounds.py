@@ -6,7 +6,8 @@ bit-exactly from a seed: ``train`` draws from three texture families (fractal cl
 stripes, rotated checkers), ``wide`` from those and two more (thin line segments, soft
 ellipses), ``heldout`` from three *other* families (Voronoi cells, radial rings, Mondrian
 rectangles). A held-out texture therefore never occurs in training, and the shift is one of
-texture statistics, not only of seeds. ``--backgrounds DIR`` swaps in any
+texture statistics, not only of seeds. ``leaves`` adds dead leaves, which have the
+scale and occlusion statistics of photographs. ``--backgrounds DIR`` swaps in any
 folder of photos, or video files whose frames are used.
 """
 
@@ -156,12 +157,59 @@ def blobs(rng: np.random.Generator, size: int) -> np.ndarray:
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
+def leaves(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Dead leaves: opaque discs, ellipses and rotated rectangles of power-law sizes (density
+    of radius r as r^-3) painted over each other until they cover the ground, in a few related
+    colours, under smooth shading and a slight blur. The model reproduces the occlusion
+    and scale statistics of photographs (a 1/f amplitude spectrum, edges at every scale),
+    which no other family has (Lee, Mumford and Huang, 2001; Baradad et al., 2021)."""
+    # A few hues, muted towards grey as most of a photograph's colours are.
+    hues = _palette(rng, int(rng.integers(2, 6)))
+    hues = 128 + (hues - 128) * rng.uniform(0.2, 1.0, (len(hues), 1))
+    image = np.empty((size, size, 3), np.uint8)
+    image[:] = hues[0].astype(np.uint8)
+    # Enough leaves to cover the image several times over: with these radii a leaf covers
+    # ~2 pi low^2 ln(high / low) pixels on average, ~150 at size 256.
+    low, high = 0.01 * size, 0.4 * size
+    count = int(rng.integers(1500, 3000))
+    radii = (low ** -2 - rng.random(count) * (low ** -2 - high ** -2)) ** -0.5
+    for radius in radii:
+        centre = rng.uniform(-0.1, 1.1, 2) * size
+        colour = np.clip(hues[rng.integers(len(hues))] * rng.uniform(0.5, 1.3)
+                         + rng.normal(0, 12, 3), 0, 255)
+        colour = tuple(float(v) for v in colour)
+        kind = rng.integers(3)
+        if kind == 0:
+            cv2.circle(image, (int(centre[0]), int(centre[1])), max(1, int(radius)), colour,
+                       -1, cv2.LINE_AA)
+        elif kind == 1:
+            axes = (max(1, int(radius)), max(1, int(radius * rng.uniform(0.3, 1.0))))
+            cv2.ellipse(image, (int(centre[0]), int(centre[1])), axes,
+                        float(rng.uniform(0, 180)), 0, 360, colour, -1, cv2.LINE_AA)
+        else:
+            box = ((float(centre[0]), float(centre[1])),
+                   (float(2 * radius), float(2 * radius * rng.uniform(0.2, 1.0))),
+                   float(rng.uniform(0, 180)))
+            cv2.fillPoly(image, [cv2.boxPoints(box).astype(np.int32)], colour, cv2.LINE_AA)
+    cells = int(rng.integers(2, 5))
+    shading = cv2.resize(rng.uniform(0.6, 1.2, (cells, cells)).astype(np.float32),
+                         (size, size), interpolation=cv2.INTER_CUBIC)
+    shaded = image.astype(np.float32) * shading[..., None]
+    sigma = rng.uniform(0.0, 0.8) * size / 256
+    if sigma > 0.3:
+        shaded = cv2.GaussianBlur(shaded, (0, 0), sigma)
+    return np.clip(shaded, 0, 255).astype(np.uint8)
+
+
 #: Texture families of each procedural bank. ``wide`` is ``train`` plus two families that
-#: neither ``train`` nor ``heldout`` has; ``heldout`` shares no family with either.
+#: neither ``train`` nor ``heldout`` has, ``leaves`` is ``wide`` plus dead leaves;
+#: ``heldout`` shares no family with any of them.
 _TRAIN: dict[str, Generator] = {"clouds": clouds, "stripes": stripes, "checker": checker}
+_WIDE: dict[str, Generator] = {**_TRAIN, "lines": lines, "blobs": blobs}
 FAMILIES: dict[str, dict[str, Generator]] = {
     "train": _TRAIN,
-    "wide": {**_TRAIN, "lines": lines, "blobs": blobs},
+    "wide": _WIDE,
+    "leaves": {**_WIDE, "leaves": leaves},
     "heldout": {"cells": cells, "rings": rings, "mondrian": mondrian},
 }
 
