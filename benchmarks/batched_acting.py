@@ -1,13 +1,15 @@
 """Evaluation episodes stepped together (``twist-eval --batch N``) against one at a time, in
 one run: the agent steps per second of ``evaluate`` for N episodes of a `quick`-sized
 student (random weights; on rendered 64x64 views) and of a `quick` teacher (on states), each
-with batch 1 (the baseline, measured in the same run) and batch N. Simulation and rendering
-stay one environment at a time; what batching removes is N - 1 of the N policy calls per
-step (on a GPU, their host-device round trips). Medians of ``--repeats`` alternating runs;
-each run builds its renderer and, batched, one simulator per episode slot (~70 ms each), as
-``twist-eval`` does. Prints one JSON line.
+with batch 1 (the baseline, measured in the same run), batch N, and with ``--workers W`` also
+batch N with the environments in W worker processes (``twist-eval --workers``). Batching
+alone removes N - 1 of the N policy calls per step (on a GPU, their host-device round
+trips); workers also simulate and render the N environments in parallel. Medians of
+``--repeats`` alternating runs; each run builds its renderer(s) and one simulator per episode
+slot (~70 ms each), and starts its workers, as ``twist-eval`` does. Prints one JSON line.
 
-    python benchmarks/batched_acting.py [--episodes 16] [--steps 250] [--repeats 3] [--device cpu]
+    python benchmarks/batched_acting.py [--episodes 16] [--steps 250] [--repeats 3]
+        [--device cpu] [--workers W]
 """
 
 from __future__ import annotations
@@ -28,19 +30,24 @@ from twist_models.teacher import Teacher
 TASK = "cartpole-balance"
 
 
-def steps_per_second(agent: object, config: EvalConfig, batch: int) -> float:
+def steps_per_second(agent: object, config: EvalConfig, batch: int, workers: int = 1) -> float:
     start = time.perf_counter()
-    results = evaluate(agent, config, seed=0, batch=batch)
+    results = evaluate(agent, config, seed=0, batch=batch, workers=workers)
     return sum(r.steps for r in results) / (time.perf_counter() - start)
 
 
-def medians(agent: object, config: EvalConfig, batch: int, repeats: int) -> tuple[float, float]:
-    """Median agent steps/s alone and with ``batch``, the two measured alternately."""
-    alone, together = [], []
+def medians(agent: object, config: EvalConfig, batch: int, repeats: int, workers: int
+            ) -> dict[str, float]:
+    """Median agent steps/s alone, with ``batch``, and (``workers`` > 1) with ``batch`` in
+    that many worker processes, the variants measured in turn."""
+    variants = {"alone": (1, 1), "batched": (batch, 1)}
+    if workers > 1:
+        variants["workers"] = (batch, workers)
+    samples: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(repeats):
-        alone.append(steps_per_second(agent, config, 1))
-        together.append(steps_per_second(agent, config, batch))
-    return statistics.median(alone), statistics.median(together)
+        for name, (n, w) in variants.items():
+            samples[name].append(steps_per_second(agent, config, n, w))
+    return {name: statistics.median(values) for name, values in samples.items()}
 
 
 def main() -> None:
@@ -49,6 +56,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=250, help="agent steps per episode")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="also time the batch with its environments in this many processes")
     args = parser.parse_args()
     torch.manual_seed(0)
     env = TaskEnv(TASK)  # for the state and action sizes
@@ -60,12 +69,14 @@ def main() -> None:
               "oracle": StateAgent(teacher, TASK, device=args.device)}
     config = EvalConfig(task=TASK, dr="heldout", episodes=args.episodes, max_steps=args.steps)
     row: dict[str, object] = {"device": args.device, "episodes": args.episodes,
-                              "steps_per_episode": args.steps}
+                              "steps_per_episode": args.steps, "workers": args.workers}
     for name, agent in agents.items():
-        alone, together = medians(agent, config, args.episodes, args.repeats)
-        row[f"{name}_steps_per_s_alone"] = round(alone, 1)
-        row[f"{name}_steps_per_s_batched"] = round(together, 1)
-        row[f"{name}_speedup"] = round(together / alone, 2)
+        rates = medians(agent, config, args.episodes, args.repeats, args.workers)
+        for variant, rate in rates.items():
+            row[f"{name}_steps_per_s_{variant}"] = round(rate, 1)
+        row[f"{name}_speedup"] = round(rates["batched"] / rates["alone"], 2)
+        if "workers" in rates:
+            row[f"{name}_speedup_workers"] = round(rates["workers"] / rates["alone"], 2)
     print(json.dumps(row))
 
 

@@ -85,6 +85,9 @@ def main(
     batch: Annotated[int, typer.Option(
         help="Episodes stepped together, one batched call of each trained agent per step "
              "(the same episodes, up to float rounding).")] = 1,
+    workers: Annotated[int, typer.Option(
+        help="Processes that simulate and render a batch's environments (with --batch; "
+             "the same episodes as 1).")] = 1,
     save_trajectories: Annotated[bool, typer.Option(
         "--save-trajectories", help="Write each episode's states, actions and rewards to "
                                     "--out/trajectories/NAME-seedS-episodeE.npz.")] = False,
@@ -106,7 +109,7 @@ def main(
     with progress_bar(quiet, "evaluating", describe) as report:
         summary = run_evaluation(agents, config, seed_list, out_dir, video, device,
                                  against=paired_with, resume=resume, batch=batch,
-                                 trajectories=save_trajectories,
+                                 trajectories=save_trajectories, workers=workers,
                                  on_progress=None if report is None
                                  else lambda done, total: report((done, total)))
     table = Table(title=f"{task}, DR {dr}, {episodes} episodes x {len(seed_list)} seeds")

@@ -479,6 +479,37 @@ def test_episodes_stepped_together_are_the_episodes_run_alone(gl, agents) -> Non
         assert (lone_calls == 0) == (spec != "random"), spec
 
 
+def test_worker_processes_give_the_episodes_of_one_process(gl, agents) -> None:
+    """``workers``: the same batch simulated and rendered in 2 processes gives exactly the
+    episodes, returns and frames of the same batch in this process (the same policy calls on
+    the same inputs, so no rounding may differ)."""
+    config = EvalConfig(task="cartpole-balance", episodes=5, max_steps=12)
+    agent = load_agent(agents["agent"])
+    runs = []
+    for workers in (1, 2):
+        frames: dict[int, list[np.ndarray]] = {}
+        results = evaluate(agent, config, seed=2, batch=3, workers=workers,
+                           record=lambda e, f, frames=frames: frames.setdefault(e, []).append(f))
+        runs.append(([(r.episode, r.episode_seed, r.steps, r.episode_return) for r in results],
+                     frames))
+    (local, local_frames), (workers, worker_frames) = runs
+    assert workers == local
+    assert len({r[3] for r in local}) > 1  # the episodes differ
+    assert local_frames.keys() == worker_frames.keys()
+    for episode, clip in local_frames.items():
+        np.testing.assert_array_equal(np.stack(clip), np.stack(worker_frames[episode]))
+
+
+def test_environment_workers_report_a_bad_background_folder_as_ours(tmp_path) -> None:
+    from twist_data.errors import BackgroundError
+    from twist_data.randomisation import DRConfig
+    from twist_data.vector_env import EnvWorkers
+
+    dr = DRConfig(background="directory", background_dir=str(tmp_path / "missing"))
+    with pytest.raises(BackgroundError):
+        EnvWorkers("cartpole-balance", slots=2, workers=2, dr=dr)
+
+
 def test_saved_trajectories_replay_to_the_same_states_and_rewards(tmp_path) -> None:
     # The saved actions, replayed in a fresh environment from the episode's seed, must give
     # back the saved states and rewards, and the rewards must sum to the reported return.

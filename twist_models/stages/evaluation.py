@@ -31,9 +31,9 @@ import torch
 from twist_data.errors import ConfigError, TwistError
 from twist_data.export import episode_strip, write_video
 from twist_data.randomisation import DR_PRESETS, DRConfig, dr_preset
-from twist_data.render import DRRenderer
 from twist_data.seeding import evaluation_episode_seed
 from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Step, TaskEnv, task_spec
+from twist_data.vector_env import EnvWorkers, LocalEnvs
 from twist_models.agent import Agent, AgentState
 from twist_models.checkpoint import read_checkpoint
 from twist_models.config import require_positive, to_json
@@ -380,7 +380,7 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
              on_episode: Callable[[EpisodeResult], None] | None = None,
              record: Callable[[int, np.ndarray], None] | None = None,
              skip: frozenset[int] = frozenset(), batch: int = 1,
-             trajectories: bool = False) -> list[EpisodeResult]:
+             trajectories: bool = False, workers: int = 1) -> list[EpisodeResult]:
     """Run ``config.episodes`` episodes of ``agent``, but those in ``skip``;
     ``record(episode, frame)`` receives the rendered view of every step (for videos) when
     given; with ``trajectories`` each result carries its episode's states, actions and
@@ -395,45 +395,50 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
     draws for every ``batch``, and follows the lone episode's trajectory until the rounding
     of batched matrix products (a batch of N sums in another order than N batches of 1)
     tips a sampled class, after which the two differ as two draws would (returns agree to
-    ~1e-9 over a few steps; over 250 some episodes part). ``batch=1`` is the reference."""
+    ~1e-9 over a few steps; over 250 some episodes part). ``batch=1`` is the reference.
+
+    ``workers`` > 1 simulates and renders a batch's environments in that many worker
+    processes (:class:`~twist_data.vector_env.EnvWorkers`), with the same episodes as in
+    this process."""
     check_compatible(agent, config)
-    if batch < 1:
-        raise ConfigError(f"batch must be >= 1, got {batch}")
+    if batch < 1 or workers < 1:
+        raise ConfigError(f"batch and workers must be >= 1, got {batch} and {workers}")
     render = agent.uses_images or record is not None
     supersample = config.supersample or getattr(agent, "supersample", None) or 1
     todo = [i for i in range(config.episodes) if i not in skip]
     # An agent without act_batch keeps one episode's state: its episodes run one at a time.
     batched = batch > 1 and getattr(agent, "batchable", False)
     width = max(1, min(batch, len(todo))) if batched else 1
-    envs = [TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
-            for _ in range(width)]
+    envs = dict(task=config.task, slots=width, dr=config.dr_config(),
+                image_size=config.image_size, supersample=supersample,
+                action_repeat=config.action_repeat, seed=seed, max_steps=config.max_steps,
+                render=render)
+    pool = (EnvWorkers(workers=workers, **envs) if workers > 1 and width > 1
+            else LocalEnvs(**envs))
     results = []
-    with (DRRenderer(config.task, config.dr_config(), config.image_size, views=1,
-                     supersample=supersample) as renderer,
-          single_threaded(), torch.random.fork_rng(devices=range(torch.cuda.device_count()))):
-        samplers = [renderer.sampler(seed) for _ in range(width)]
+    with pool, single_threaded(), torch.random.fork_rng(devices=range(torch.cuda.device_count())):
         for lo in range(0, len(todo), width):
             group = todo[lo:lo + width]
-            for result in _run_group(agent, envs, samplers, renderer, seed, group, render,
-                                     record, batched, trajectories):
+            for result in _run_group(agent, pool, seed, group, record, batched, trajectories):
                 results.append(result)
                 if on_episode is not None:
                     on_episode(result)
     return results
 
 
-def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
-               renderer: DRRenderer, seed: int, episodes: list[int], render: bool,
+def _run_group(agent: EvalAgent, envs: LocalEnvs | EnvWorkers, seed: int, episodes: list[int],
                record: Callable[[int, np.ndarray], None] | None, batched: bool,
                trajectories: bool = False) -> list[EpisodeResult]:
-    """``episodes`` stepped together until each ends: one episode per slot, each slot with
-    its environment, its DR sampler and its random stream. Alone (not ``batched``: one
-    slot), the agent draws from torch's stream seeded by the episode seed; batched, each
-    slot's draws come from a generator seeded the same way (the same numbers)."""
+    """``episodes`` stepped together until each ends: one episode per slot of ``envs`` (its
+    environment, DR sampler and view), each with its own random stream. Alone (not
+    ``batched``: one slot), the agent draws from torch's stream seeded by the episode seed;
+    batched, each slot's draws come from a generator seeded the same way (the same
+    numbers)."""
     n = len(episodes)
     seeds = [evaluation_episode_seed(seed, i) for i in episodes]
-    steps = [envs[slot].reset(seed=s, dynamics=samplers[slot].begin_episode(s))
-             for slot, s in enumerate(seeds)]
+    observed = envs.reset(seeds)
+    steps = [step for step, _ in observed]
+    images = [image for _, image in observed]
     if batched:
         agent.reset_batch(n)
         streams = [torch.Generator().manual_seed(s) for s in seeds]
@@ -442,15 +447,12 @@ def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
         torch.manual_seed(seeds[0])  # the agents sample their latents: re-runs match
     totals, counts = [0.0] * n, [0] * n
     done = [False] * n
-    images: list[np.ndarray | None] = [None] * n
     visited: list[list[np.ndarray]] = [[s.state] for s in steps]
     acted: list[list[tuple[np.ndarray, float]]] = [[] for _ in steps]
     while True:
         for slot in range(n):
             if done[slot]:
                 continue
-            images[slot] = (renderer.render(steps[slot].physics, samplers[slot].sample())[0]
-                            if render else None)
             if record is not None:
                 record(episodes[slot], images[slot])
             done[slot] = steps[slot].is_last
@@ -462,14 +464,15 @@ def _run_group(agent: EvalAgent, envs: list[TaskEnv], samplers: list[Any],
         else:
             with torch.no_grad():
                 actions = [np.asarray(agent.act(steps[0], images[0]), np.float32)]
-        for slot in live:
-            action = np.clip(actions[slot], -1.0, 1.0)
-            steps[slot] = envs[slot].step(action)
-            totals[slot] += steps[slot].reward
+        clipped = [np.clip(actions[slot], -1.0, 1.0) for slot in live]
+        for slot, action, (step, image) in zip(live, clipped, envs.step(live, clipped),
+                                               strict=True):
+            steps[slot], images[slot] = step, image
+            totals[slot] += step.reward
             counts[slot] += 1
             if trajectories:
-                visited[slot].append(steps[slot].state)
-                acted[slot].append((action, steps[slot].reward))
+                visited[slot].append(step.state)
+                acted[slot].append((action, step.reward))
     return [EpisodeResult(seed, i, s, totals[k], counts[k],
                           _trajectory(visited[k], acted[k]) if trajectories else None)
             for k, (i, s) in enumerate(zip(episodes, seeds, strict=True))]
@@ -512,7 +515,7 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                    on_episode: Callable[[str, EpisodeResult], None] | None = None,
                    against: str | None = None, resume: bool = False,
                    on_progress: Callable[[int, int], None] | None = None, batch: int = 1,
-                   trajectories: bool = False) -> dict[str, Any]:
+                   trajectories: bool = False, workers: int = 1) -> dict[str, Any]:
     """Evaluate every ``name: checkpoint`` (or loaded agent) on the same episodes for each seed and write
     ``episodes.csv``, ``summary.json``, ``returns.png`` and ``videos`` mp4s per agent to
     ``out``. Returns the summary: per agent the mean and std over seeds of the per-seed mean
@@ -526,14 +529,15 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
     are kept and not run again, provided its ``eval-config.json`` matches ``config`` in every
     field but ``episodes`` (agents and seeds may be added). ``on_progress(done, total)``
     follows the episodes asked for, those found done included. ``batch``: episodes stepped
-    together (:func:`evaluate`). ``trajectories``: each episode's states, actions and rewards
-    go to ``trajectories/NAME-seedS-episodeE.npz`` as it finishes."""
+    together, ``workers``: processes they are simulated in (:func:`evaluate`).
+    ``trajectories``: each episode's states, actions and rewards go to
+    ``trajectories/NAME-seedS-episodeE.npz`` as it finishes."""
     if not agents:
         raise EvalError("no agents to evaluate")
     if not seeds:
         raise EvalError("no seeds to evaluate")
-    if batch < 1:
-        raise ConfigError(f"batch must be >= 1, got {batch}")
+    if batch < 1 or workers < 1:
+        raise ConfigError(f"batch and workers must be >= 1, got {batch} and {workers}")
     if against is not None and against not in agents:
         raise EvalError(f"the agent to pair against, {against!r}, is not among the agents "
                         f"({', '.join(agents)})")
@@ -578,7 +582,7 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                     on_progress(count, total)
 
             skip = frozenset(e for a, s_, e in done if a == name and s_ == seed)
-            evaluate(agent, config, seed, finished, record, skip, batch, trajectories)
+            evaluate(agent, config, seed, finished, record, skip, batch, trajectories, workers)
             for episode, clip in frames.items():
                 write_video(episode_strip(np.stack(clip)[:, None]),
                             out / f"{name}-seed{seed}-episode{episode}.mp4")
