@@ -120,7 +120,8 @@ _FULL = dict(light_range=(0.5, 1.5), camera_shift=0.05, camera_rotation=0.1,
 #: scored 714.1 against 585.3 on held-out backgrounds and 351.2 against 135.0 on a
 #: photograph; on cartpole about the same as with ``train``, docs/experiments.md);
 #: ``train-leaves`` adds dead leaves, a family with the statistics of photographs, for
-#: students that must read scenes in front of real photographs (not measured yet);
+#: students that must read scenes in front of real photographs (one cartpole seed: 800.2
+#: against 752.5 in front of eight photographs, the same on held-out backgrounds);
 #: ``none`` renders the nominal scene.
 DR_PRESETS: dict[str, DRConfig] = {
     "train": DRConfig(background="train", resample="step"),
