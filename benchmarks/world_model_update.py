@@ -233,7 +233,7 @@ def bench_teacher(preset: str, repeats: int, device: torch.device,
 
 def bench_student(preset: str, repeats: int, device: torch.device,
                   imag_starts: int | None = None, compile_too: bool = False,
-                  compile_mode: str = "default", whole_only: bool = False) -> dict[str, object]:
+                  compile_mode: str = "default") -> dict[str, object]:
     torch.manual_seed(0)
     base = teacher_preset(preset, STATE, ACTIONS).world_model
     config = WorldModelConfig(obs="image", state_dim=STATE, action_dim=ACTIONS, rssm=base.rssm,
@@ -312,9 +312,10 @@ def main() -> None:
     device = torch.device(args.device)
     parts = ["teacher", "student"] if args.part == "all" else [args.part]
     for part in parts:
+        options = {"whole_only": args.whole_only} if part == "teacher" else {}
         result = {"teacher": bench_teacher, "student": bench_student}[part](
             args.preset, args.repeats, device, args.imag_starts, args.compile, args.compile_mode,
-            args.whole_only)
+            **options)
         medians = result.pop("medians")
         samples = result.pop("samples")
         figure = result.pop("figure")

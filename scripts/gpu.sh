@@ -35,7 +35,8 @@ fi
 STEPS=()
 if [[ -n "${STUDENT_STEPS:-}" || "$PRESET" != tiny ]]; then STEPS=(--steps "${STUDENT_STEPS:-10000}"); fi
 # On a GPU the window objective runs compiled with CUDA graphs (the collector's teacher does
-# so by itself there): its update measured 14x eager's on an H200 (docs/performance.md).
+# so by itself there): the benchmark's Eq. 3 student update ran 14x eager's on an H200; the
+# whole objective compiled has not run on a GPU yet (docs/performance.md).
 DISTIL_COMPILE=()
 if [[ "$DEVICE" == cuda* ]]; then DISTIL_COMPILE=(--set compile=true); fi
 EVAL=(--episodes "${EVAL_EPISODES:-10}")
