@@ -11,8 +11,9 @@
 # LEARN_FRAMES (frames the teacher learns for, 100000), STUDENT_STEPS (10000), RECIPE (dense),
 # EVAL_EPISODES (10), TASK (cartpole-balance). PRESET=tiny DEVICE=cpu runs it at test sizes
 # in seconds (the preset's own frames; tests/test_gpu_script.py does). The frame budget is a
-# plan for a 25-minute lease that no GPU has measured yet: the first run's timings.json is
-# the measurement.
+# plan for a 25-minute lease: each stage's rate, measured at paper sizes on an H200, adds up
+# to ~22 minutes there (docs/performance.md), but the whole has not run on a GPU: the first
+# run's timings.json is the measurement.
 set -euo pipefail
 if command -v twist-collect >/dev/null 2>&1; then
   # Already installed (an active environment, or a GPU image with the package on PATH):
@@ -35,8 +36,8 @@ fi
 STEPS=()
 if [[ -n "${STUDENT_STEPS:-}" || "$PRESET" != tiny ]]; then STEPS=(--steps "${STUDENT_STEPS:-10000}"); fi
 # On a GPU the window objective runs compiled with CUDA graphs (the collector's teacher does
-# so by itself there): the benchmark's Eq. 3 student update ran 14x eager's on an H200; the
-# whole objective compiled has not run on a GPU yet (docs/performance.md).
+# so by itself there): on an H200 the dense recipe's whole window objective ran 49 updates/s
+# compiled, after ~4 minutes of compiling (docs/performance.md).
 DISTIL_COMPILE=()
 if [[ "$DEVICE" == cuda* ]]; then DISTIL_COMPILE=(--set compile=true); fi
 EVAL=(--episodes "${EVAL_EPISODES:-10}")
