@@ -12,8 +12,8 @@
 # EVAL_EPISODES (10), TASK (cartpole-balance). PRESET=tiny DEVICE=cpu runs it at test sizes
 # in seconds (the preset's own frames; tests/test_gpu_script.py does). The frame budget is a
 # plan for a 25-minute lease: each stage's rate, measured at paper sizes on an H200, adds up
-# to ~22 minutes there (docs/performance.md), but the whole has not run on a GPU: the first
-# run's timings.json is the measurement.
+# to ~19 minutes there plus the dense recipe's single-frame stage (docs/performance.md), but
+# the whole has not run on a GPU: the first run's timings.json is the measurement.
 set -euo pipefail
 if command -v twist-collect >/dev/null 2>&1; then
   # Already installed (an active environment, or a GPU image with the package on PATH):
