@@ -55,7 +55,7 @@ from torch import nn
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.config import PRESETS, CNNConfig
-from twist_models.distillation import encoder_autocast
+from twist_models.device import precision_autocast
 from twist_models.networks import ImageEncoder
 from twist_models.teacher import load_teacher
 
@@ -119,7 +119,7 @@ def train(args: argparse.Namespace) -> None:
     start = time.perf_counter()
     for update in range(1, args.steps + 1):
         steps = rng.choice(train_steps, args.batch)
-        with encoder_autocast("auto", device):
+        with precision_autocast("auto", device):
             images = torch.as_tensor(frames_before(data, steps, args.frames, rng))
             predicted = head(embed_frames(encoder, images)).float()
         loss = (nn.functional.huber_loss(predicted, target[steps]) if args.all_frames
@@ -128,7 +128,7 @@ def train(args: argparse.Namespace) -> None:
         loss.backward()
         optimiser.step()
         if update % args.every == 0 or update == args.steps:
-            with torch.no_grad(), encoder_autocast("auto", device):
+            with torch.no_grad(), precision_autocast("auto", device):
                 test = head(embed_frames(encoder, test_images)).float().numpy() * scale + mean
             error = (test - states[test_steps][:, read])[:, [0, read.index(SIN)]]
             print(json.dumps({

@@ -557,3 +557,48 @@ def test_the_compiled_teacher_update_gives_the_eager_metrics_and_weights(device:
         # and critic's weights then differ by more than rounding, so only the metrics are
         # held to a (looser) bound there.
         assert max(v for (_, key), v in gaps.items() if key in behaviour) < 2e-2, gaps
+
+
+def test_bfloat16_imagination_changes_the_arithmetic_not_the_update() -> None:
+    """``ActorCriticConfig.precision=bfloat16``: the imagined rollout and the actor-critic's
+    networks run in bfloat16 autocast, while the weights, the latent logits, the actions and
+    the returns stay float32; one update's behaviour metrics are those of float32 to
+    bfloat16's rounding, and the world model's (untouched by the setting) are equal."""
+    import copy
+
+    from twist_models.device import resolve_precision
+
+    cpu = torch.device("cpu")
+    assert resolve_precision("float32", cpu) == "float32"
+    assert resolve_precision("bfloat16", cpu) == "bfloat16"
+    with pytest.raises(ConfigError, match=r"^precision must be one of float32, bfloat16, "
+                                          r"auto, got 'half'$"):
+        dataclasses.replace(teacher_preset("tiny", 5, 2).actor_critic, precision="half")
+    torch.manual_seed(0)
+    full = Teacher(teacher_preset("tiny", 5, 2))
+    mixed = copy.deepcopy(full)
+    mixed.actor_critic.config = dataclasses.replace(full.config.actor_critic,
+                                                    precision="bfloat16")
+    batch = _batch(b=4, t=8, s=5, a=2)
+    metrics = []
+    for teacher in (full, mixed):
+        torch.manual_seed(7)
+        metrics.append(teacher.train_step(batch))
+    assert all(p.dtype == torch.float32 for p in mixed.parameters())
+    assert metrics[0].keys() == metrics[1].keys()
+    for key in ("model_loss", "kl", "recon_loss", "reward_loss"):
+        assert metrics[1][key] == metrics[0][key], key
+    for key in ("imagined_return", "imagined_reward", "actor_entropy", "critic_loss"):
+        assert metrics[1][key] == pytest.approx(metrics[0][key], rel=0.05, abs=1e-3), key
+        assert np.isfinite(metrics[1][key])
+    assert metrics[1]["actor_loss"] != metrics[0]["actor_loss"]  # bfloat16 did round
+    rssm = mixed.world_model.rssm
+    start = {k: v[:, 0] for k, v in rssm.observe(
+        mixed.world_model.encoder(batch["state"]), batch["action"], batch["is_first"])[0].items()}
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        states, actions = rssm.imagine(start, 3, policy=lambda f: mixed.actor_critic.actor(f)
+                                       .rsample())
+        hidden = rssm.img_out[0](states["deter"])
+    assert hidden.dtype == torch.bfloat16  # the networks did run in bfloat16
+    assert all(v.dtype == torch.float32 for v in states.values())
+    assert actions.dtype == torch.float32

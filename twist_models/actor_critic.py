@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from twist_models.config import ActorCriticConfig, OptimConfig
+from twist_models.device import precision_autocast
 from twist_models.losses import (
     gaussian_nll,
     lambda_returns,
@@ -17,7 +18,7 @@ from twist_models.losses import (
     twohot_loss,
     twohot_mean,
 )
-from twist_models.networks import MLP
+from twist_models.networks import MLP, full_precision
 from twist_models.rssm import RSSM, State
 from twist_models.world_model import WorldModel
 
@@ -75,7 +76,9 @@ class Actor(nn.Module):
         self.min_std = config.min_std
 
     def forward(self, feature: torch.Tensor) -> TruncatedNormal:
-        mean, std = self.net(feature).chunk(2, -1)
+        # float32 whatever autocast the net ran in: bfloat16 would round the erfinv clamp's
+        # 1 - 1e-6 to 1 and the sample to infinity.
+        mean, std = full_precision(self.net(feature)).chunk(2, -1)
         return TruncatedNormal(torch.tanh(mean), 2 * torch.sigmoid(std / 2) + self.min_std)
 
 
@@ -122,8 +125,8 @@ class ActorCritic(nn.Module):
     def _critic_loss(self, feature: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
         """Per-state critic loss of ``feature`` [N, H, F] against ``returns`` [H, N] -> [H, N]."""
         if self.config.critic_head == "twohot":
-            return twohot_loss(self.critic(feature).transpose(0, 1), returns, self.bins)
-        return gaussian_nll(self.value(feature).T, returns, 0)
+            return twohot_loss(full_precision(self.critic(feature)).transpose(0, 1), returns, self.bins)
+        return gaussian_nll(full_precision(self.value(feature)).T, returns, 0)
 
     def train_step(self, world_model: WorldModel, start: State) -> dict[str, torch.Tensor]:
         """One actor and one critic update from imagined rollouts of the ``start`` states
@@ -139,16 +142,20 @@ class ActorCritic(nn.Module):
         for p in frozen:
             p.requires_grad_(False)
         try:
-            if c.actor_grad == "dynamics":
-                feature, entropy, _ = self._imagine_fn(rssm, start, True)
-            else:
-                with torch.no_grad():
-                    feature, _, actions = self._imagine_fn(rssm, start, False)
-            # Heads run on the contiguous [N, H+1, F] layout (a transposed input sends
-            # nn.Linear down a slow batched-matmul path); their [N, H+1] outputs go time first.
-            reward = world_model.reward(feature).T
-            pcont = c.discount * world_model.continuation(feature).T
-            value = self.value(feature, target=True).T
+            with precision_autocast(c.precision, start["deter"].device):
+                if c.actor_grad == "dynamics":
+                    feature, entropy, _ = self._imagine_fn(rssm, start, True)
+                else:
+                    with torch.no_grad():
+                        feature, _, actions = self._imagine_fn(rssm, start, False)
+                # Heads run on the contiguous [N, H+1, F] layout (a transposed input sends
+                # nn.Linear down a slow batched-matmul path); their [N, H+1] outputs go time
+                # first. Returns are sums of ~100 rewards: bfloat16's 8 bits would round them
+                # by ~0.5, so everything after the networks is float32.
+                reward = full_precision(world_model.reward(feature)).T
+                pcont = c.discount * full_precision(world_model.continuation(feature)).T
+                value = full_precision(self.value(feature, target=True)).T
+            feature = full_precision(feature)
             # Transition t leaves state t and arrives in t + 1, whose predicted reward and
             # continuation it earns (the dataset's convention: reward[t] is for arriving at t).
             returns = lambda_returns(reward[1:], value[:-1], pcont[1:], value[-1], c.lambda_)
@@ -168,8 +175,9 @@ class ActorCritic(nn.Module):
             for p in frozen:
                 p.requires_grad_(True)
         self._step(self.actor_opt, actor_loss, self.actor)
-        critic_loss = (weight * self._critic_loss(feature[:, :-1].detach().contiguous(),
-                                                  returns.detach())).mean()
+        with precision_autocast(c.precision, feature.device):
+            critic_loss = (weight * self._critic_loss(feature[:, :-1].detach().contiguous(),
+                                                      returns.detach())).mean()
         self._step(self.critic_opt, critic_loss, self.critic)
         self.updates += 1
         if int(self.updates) % c.slow_target_every == 0:

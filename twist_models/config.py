@@ -113,6 +113,10 @@ class CNNConfig:
 
 ACTOR_GRADS = ("dynamics", "reinforce")
 CRITIC_HEADS = ("mse", "twohot")
+#: Arithmetic settings of the networks a training step runs: ``float32``; ``bfloat16``
+#: (autocast: weights, optimiser state and what autocast keeps in float32 stay float32);
+#: ``auto``: bfloat16 where the device computes it natively, float32 elsewhere.
+PRECISIONS = ("float32", "bfloat16", "auto")
 
 
 @dataclass(frozen=True)
@@ -148,6 +152,11 @@ class ActorCriticConfig:
     return_norm: bool = False
     """Divide the actor's objective by max(1, EMA of the 5-95% range of returns) (DreamerV3),
     which keeps the actor's step size independent of the task's reward scale."""
+    precision: str = "float32"
+    """Arithmetic of the imagined rollouts and of the heads, actor and critic read along them:
+    ``float32`` (DreamerV2), ``bfloat16`` (autocast; weights, the GRU's state h, latent
+    logits, actions, returns and losses stay float32) or ``auto`` (bfloat16 where the device computes it
+    natively: :func:`twist_models.device.resolve_precision`)."""
     critic_head: str = "mse"
     """``mse``: the critic regresses returns (DreamerV2); ``twohot``: a categorical over 255
     symlog-spaced bins trained on two-hot targets (DreamerV3), whose output need not grow to
@@ -157,6 +166,7 @@ class ActorCriticConfig:
         require_positive(self, "horizon", "slow_target_every", "actor_lr", "critic_lr", "min_std")
         require_choice(self, "critic_head", CRITIC_HEADS)
         require_choice(self, "actor_grad", ACTOR_GRADS)
+        require_choice(self, "precision", PRECISIONS)
         if self.imag_starts < 0:
             raise ConfigError(f"imag_starts must be >= 0 (0 = every state), got {self.imag_starts}")
         if not 0 < self.discount <= 1 or not 0 <= self.lambda_ <= 1:

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
+
 import torch
 
 from twist_data.errors import ConfigError
+from twist_models.config import PRECISIONS
 
 
 def resolve_device(device: str | torch.device) -> torch.device:
@@ -36,11 +40,40 @@ def compile_mode(setting: str, device: torch.device) -> str | None:
     for eager. On CUDA the updates are chains of small kernels (a 50-step filter, a 15-step
     imagination) bound by launches, so the compiled graphs are also captured as CUDA graphs
     (``reduce-overhead``): the paper-sized world-model update ran 11x faster on an H200
-    (docs/performance.md). On a CPU compilation gave 1.07-1.17x after minutes of compiling,
-    so ``auto`` stays eager there."""
+    (docs/performance.md). On a 2-core CPU the `quick` collector's compiled update ran 1.5x
+    eager, but only after 8 minutes of compiling, which its 5,625 updates barely repay, so
+    ``auto`` stays eager there (``benchmarks/teacher_update_modes.py``)."""
     if setting not in COMPILE_SETTINGS:
         raise ConfigError(f"unknown compile setting {setting!r}; valid: "
                           f"{', '.join(COMPILE_SETTINGS)}")
     if setting == "off" or (setting == "auto" and device.type != "cuda"):
         return None
     return "reduce-overhead" if device.type == "cuda" else "default"
+
+
+
+@functools.cache
+def _cpu_has_bfloat16() -> bool:
+    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """``float32`` or ``bfloat16`` for ``precision`` (:data:`PRECISIONS`) on ``device``:
+    ``auto`` is bfloat16 on CUDA and on CPUs with AVX512-BF16 or AMX, where matrix products in
+    it run about twice as fast (``benchmarks/encoder_speed.py``), and float32 on other CPUs,
+    where autocast would emulate it and run slower."""
+    if precision not in PRECISIONS:
+        raise ConfigError(f"unknown precision {precision!r}; valid: {', '.join(PRECISIONS)}")
+    if precision == "auto":
+        native = device.type == "cuda" or (device.type == "cpu" and _cpu_has_bfloat16())
+        return "bfloat16" if native else "float32"
+    return precision
+
+
+def precision_autocast(precision: str, device: torch.device
+                       ) -> contextlib.AbstractContextManager:
+    """The context networks run in for ``precision`` (:data:`PRECISIONS`) on ``device``:
+    bfloat16 autocast, or nothing for float32."""
+    if resolve_precision(precision, device) == "bfloat16":
+        return torch.autocast(device.type, dtype=torch.bfloat16)
+    return contextlib.nullcontext()

@@ -14,9 +14,7 @@ its config, recipes and size presets, and the held-out latent agreement: the bui
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,6 +26,7 @@ from twist_data.errors import ConfigError
 from twist_data.sampler import SamplerConfig
 from twist_models.config import (
     CNN_NORMS,
+    PRECISIONS,
     PRESETS,
     OptimConfig,
     replace_fields,
@@ -35,6 +34,7 @@ from twist_models.config import (
     require_non_negative,
     require_positive,
 )
+from twist_models.device import precision_autocast
 from twist_models.frame_targets import actor_sensitivity, frame_agreement, frame_terms
 from twist_models.losses import (
     action_matching_loss,
@@ -46,7 +46,6 @@ from twist_models.student import Student
 from twist_models.teacher import Teacher
 
 KEYS = ("image", "state", "action", "is_first")
-PRECISIONS = ("float32", "bfloat16", "auto")
 WINDOW_STARTS = ("zero", "teacher")
 
 @dataclass(frozen=True)
@@ -321,22 +320,6 @@ def distil_preset(name: str, recipe: str = "paper", **overrides: Any) -> DistilC
 
 
 # -- one update ---------------------------------------------------------------------------------
-@functools.cache
-def _cpu_has_bfloat16() -> bool:
-    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-
-
-def encoder_autocast(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
-    """The context the student's CNN trains in: bfloat16 autocast for ``bfloat16``, and for
-    ``auto`` where the device computes bfloat16 natively; otherwise nothing."""
-    if precision == "auto":
-        native = device.type == "cuda" or (device.type == "cpu" and _cpu_has_bfloat16())
-        precision = "bfloat16" if native else "float32"
-    if precision == "bfloat16":
-        return torch.autocast(device.type, dtype=torch.bfloat16)
-    return contextlib.nullcontext()
-
-
 def frame_loss(terms: Mapping[str, torch.Tensor], config: DistilConfig) -> torch.Tensor:
     """The per-frame terms weighted by ``config`` (a student without a state head has no
     ``state`` term)."""
@@ -405,7 +388,7 @@ class Distillation(nn.Module):
             wm = self.teacher.world_model
             t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
                                               start, post_draws, self.config.filter_read)
-        with encoder_autocast(self.config.precision, is_first.device):
+        with precision_autocast(self.config.precision, is_first.device):
             embed = self.student.embed(batch["image"], is_first).float()
         s_post, s_prior = self.student.rssm.observe(embed, action, is_first, start, post_draws,
                                                     self.config.filter_read)

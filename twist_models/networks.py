@@ -27,6 +27,11 @@ def single_threaded() -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+def full_precision(x: torch.Tensor) -> torch.Tensor:
+    """``x`` in float32 if autocast left it in a 16-bit type; float32 and float64 unchanged."""
+    return x.float() if x.dtype in (torch.bfloat16, torch.float16) else x
+
+
 class MLP(nn.Sequential):
     """``layers`` x (Linear, ELU), then a linear output layer unless ``out_dim`` is None."""
 

@@ -18,7 +18,7 @@ from torch.nn import functional as F
 
 from twist_data.errors import ConfigError
 from twist_models.config import RSSMConfig
-from twist_models.networks import LayerNormGRUCell
+from twist_models.networks import LayerNormGRUCell, full_precision
 
 State = dict[str, torch.Tensor]
 #: Maps a detached model feature [N, F] to an action [N, A].
@@ -89,7 +89,8 @@ class RSSM(nn.Module):
         return torch.cat([state["deter"], state["stoch"].flatten(-2)], -1)
 
     def _logits(self, raw: torch.Tensor) -> torch.Tensor:
-        return raw.unflatten(-1, (self.config.stoch, self.config.classes))
+        # float32 under autocast too: sampling compares cumulative probabilities with a draw.
+        return full_precision(raw).unflatten(-1, (self.config.stoch, self.config.classes))
 
     # -- one step ---------------------------------------------------------------------------
     def img_step(self, prev: State, action: torch.Tensor, sample: bool = True,

@@ -61,12 +61,11 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import plot_agreement
-from twist_models.device import compile_mode, resolve_device
+from twist_models.device import compile_mode, precision_autocast, resolve_device
 from twist_models.distillation import (
     KEYS,
     DistilConfig,
     Distillation,
-    encoder_autocast,
     frame_loss,
     latent_agreement,
 )
@@ -492,7 +491,7 @@ class _Run:
             if c.frame_augment == "colour":
                 batch["image"] = colour_jitter(batch["image"], jitter)
             batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
-            with encoder_autocast(c.precision, self.device):  # most recent frame first:
+            with precision_autocast(c.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
             if self.student.readout is not None:
                 weight = batch.get("sensitivity") if c.readout_weights == "sensitivity" else None
