@@ -125,7 +125,8 @@ class ActorCritic(nn.Module):
     def _critic_loss(self, feature: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
         """Per-state critic loss of ``feature`` [N, H, F] against ``returns`` [H, N] -> [H, N]."""
         if self.config.critic_head == "twohot":
-            return twohot_loss(full_precision(self.critic(feature)).transpose(0, 1), returns, self.bins)
+            logits = full_precision(self.critic(feature))
+            return twohot_loss(logits.transpose(0, 1), returns, self.bins)
         return gaussian_nll(full_precision(self.value(feature)).T, returns, 0)
 
     def train_step(self, world_model: WorldModel, start: State) -> dict[str, torch.Tensor]:

@@ -155,8 +155,8 @@ class ActorCriticConfig:
     precision: str = "float32"
     """Arithmetic of the imagined rollouts and of the heads, actor and critic read along them:
     ``float32`` (DreamerV2), ``bfloat16`` (autocast; weights, the GRU's state h, latent
-    logits, actions, returns and losses stay float32) or ``auto`` (bfloat16 where the device computes it
-    natively: :func:`twist_models.device.resolve_precision`)."""
+    logits, actions, returns and losses stay float32) or ``auto`` (bfloat16 where the device
+    computes it natively: :func:`twist_models.device.resolve_precision`)."""
     critic_head: str = "mse"
     """``mse``: the critic regresses returns (DreamerV2); ``twohot``: a categorical over 255
     symlog-spaced bins trained on two-hot targets (DreamerV3), whose output need not grow to

@@ -51,7 +51,6 @@ def compile_mode(setting: str, device: torch.device) -> str | None:
     return "reduce-overhead" if device.type == "cuda" else "default"
 
 
-
 @functools.cache
 def _cpu_has_bfloat16() -> bool:
     return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
