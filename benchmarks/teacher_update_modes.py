@@ -34,6 +34,7 @@ import json
 import os
 import statistics
 import time
+from collections.abc import Callable
 
 import torch
 
@@ -56,7 +57,9 @@ def collector_batch(batch: int, length: int, state_dim: int, action_dim: int,
     return {k: v.to(device) for k, v in windows.items()}
 
 
-def timed(update, device: torch.device) -> float:
+def timed(update: Callable[[], None], device: torch.device) -> float:
+    """Seconds of one call of ``update`` (waiting for the GPU on CUDA); each benchmark script
+    stands alone, so this small timer is its own."""
     if device.type == "cuda":
         torch.cuda.synchronize()
     start = time.perf_counter()
