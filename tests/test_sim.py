@@ -102,3 +102,26 @@ def test_dynamics_scales_apply_per_episode() -> None:
     np.testing.assert_allclose(env.model.body_mass, mass)
     with pytest.raises(ConfigError, match="mass_scale"):
         Dynamics(mass_scale=0.0)
+
+
+@pytest.mark.parametrize("task", ["cartpole-balance", "cup-catch"])
+def test_a_copied_environment_steps_as_a_freshly_compiled_one(task: str) -> None:
+    """Environments after a task's first are copies of a cached one; each must be its own
+    simulator and behave exactly as dm_control's own ``suite.load`` with the same seed."""
+    from dm_control import suite
+
+    from twist_data.tasks import task_spec
+
+    first = TaskEnv(task, seed=0)
+    env = TaskEnv(task, seed=7)
+    spec = task_spec(task)
+    fresh = suite.load(spec.domain, spec.task, task_kwargs={"random": 7})
+    assert env.physics.model.ptr is not first.physics.model.ptr
+    first.reset(dynamics=Dynamics(mass_scale=2.0))  # must not leak into the copy
+    ours, theirs = env._env.reset(), fresh.reset()
+    action = np.full(env.action_dim, 0.4)
+    for _ in range(6):
+        ours, theirs = env._env.step(action), fresh.step(action)
+        for key, value in theirs.observation.items():
+            np.testing.assert_array_equal(ours.observation[key], value)
+        assert ours.reward == theirs.reward
