@@ -49,7 +49,8 @@ from twist_models.networks import MLP
 from twist_models.teacher import Teacher
 from twist_models.world_model import WorldModel
 
-TARGETS_S = {("teacher", "cpu"): 0.25, ("student", "cpu"): 1.0, ("student", "cuda"): 0.040}
+TARGETS_S = {("teacher", "cpu"): 0.25, ("student", "cpu"): 1.0, ("teacher", "cuda"): 0.030,
+             ("student", "cuda"): 1 / 30}
 B, L, STATE, ACTIONS = 16, 50, 17, 6
 
 
@@ -319,6 +320,10 @@ def main() -> None:
         medians = result.pop("medians")
         samples = result.pop("samples")
         figure = result.pop("figure")
+        # The target is for the update as a run would make it: compiled where --compile
+        # timed a compiled variant, else eager.
+        if f"{part}_compiled_s" in medians:
+            figure = f"{part}_compiled_s"
         target = TARGETS_S.get((part, device.type))
         print(json.dumps({
             "benchmark": f"{part}_update", "preset": args.preset, "batch": B, "length": L,
@@ -326,7 +331,7 @@ def main() -> None:
             "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
             **{k: round(v, 4) for k, v in medians.items()}, **result,
             "compile_mode": args.compile_mode if args.compile else None,
-            "target_s": target, "meets_target": None if target is None
+            "judged": figure, "target_s": target, "meets_target": None if target is None
             else medians[figure] <= target,
             "samples": {k: [round(x, 4) for x in v] for k, v in samples.items()},
         }), flush=True)
