@@ -166,6 +166,8 @@ class TaskEnv:
 
         self._core_dim = mujoco.mj_stateSize(self.model, _full_physics())
         self._rows = model_rows(self.model, self.spec)
+        # Asked on every step; dm_control builds a new spec per call (~0.2 ms).
+        self._action_dim = int(self._env.action_spec().shape[0])
         self._done = True
 
     # -- sizes -------------------------------------------------------------------------------
@@ -179,7 +181,7 @@ class TaskEnv:
 
     @property
     def action_dim(self) -> int:
-        return int(self._env.action_spec().shape[0])
+        return self._action_dim
 
     @property
     def seconds_per_step(self) -> float:
