@@ -115,7 +115,8 @@ _FULL = dict(light_range=(0.5, 1.5), camera_shift=0.05, camera_rotation=0.1,
 #: evaluation); the ``-full`` variants add the manipulation factors (light, camera, friction,
 #: mass); ``train-contrast`` camouflages the body in half of the training views (not in the
 #: paper: the held-out scenes the read-out student loses are those where a lean changes the
-#: fewest pixel levels, docs/experiments.md); ``train-wide`` draws from 1,024 textures of five
+#: fewest pixel levels, docs/experiments.md), ``train-wide-contrast`` the same on
+#: ``train-wide``'s bank; ``train-wide`` draws from 1,024 textures of five
 #: families instead of 128 of three (not in the paper: on cup-catch its read-out student
 #: scored 714.1 against 585.3 on held-out backgrounds and 351.2 against 135.0 on a
 #: photograph; on cartpole about the same as with ``train``, docs/experiments.md);
@@ -128,6 +129,8 @@ DR_PRESETS: dict[str, DRConfig] = {
     "train-wide": DRConfig(background="wide", background_count=1024, resample="step"),
     "train-leaves": DRConfig(background="leaves", background_count=1024, resample="step"),
     "train-contrast": DRConfig(background="train", resample="step", low_contrast_share=0.5),
+    "train-wide-contrast": DRConfig(background="wide", background_count=1024, resample="step",
+                                    low_contrast_share=0.5),
     "heldout": DRConfig(background="heldout", resample="episode"),
     "train-full": DRConfig(background="train", resample="step", **_FULL),
     "heldout-full": DRConfig(background="heldout", resample="episode", **_FULL),
