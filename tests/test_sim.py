@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from twist_data.errors import ConfigError, PhysicsStateError, UnknownTaskError
-from twist_data.tasks import TASKS, Dynamics, TaskEnv
+from twist_data.tasks import TASKS, Dynamics, TaskEnv, task_spec
 
 # Observation sizes of the DMC tasks as DreamerV2/DrQ report them for state-based agents.
 KNOWN_STATE_DIMS = {"cup-catch": 8, "cartpole-balance": 5, "cheetah-run": 17, "hopper-stand": 15,
@@ -109,8 +109,6 @@ def test_a_copied_environment_steps_as_a_freshly_compiled_one(task: str) -> None
     """Environments after a task's first are copies of a cached one; each must be its own
     simulator and behave exactly as dm_control's own ``suite.load`` with the same seed."""
     from dm_control import suite
-
-    from twist_data.tasks import task_spec
 
     first = TaskEnv(task, seed=0)
     env = TaskEnv(task, seed=7)

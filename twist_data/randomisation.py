@@ -107,6 +107,8 @@ class DRConfig:
         return cls(**data)
 
 
+_WIDE = DRConfig(background="wide", background_count=1024, resample="step")
+_CAMOUFLAGED_SHARE = 0.5
 _FULL = dict(light_range=(0.5, 1.5), camera_shift=0.05, camera_rotation=0.1,
              friction_range=(0.5, 2.0), mass_range=(0.75, 1.25))
 
@@ -126,11 +128,11 @@ _FULL = dict(light_range=(0.5, 1.5), camera_shift=0.05, camera_rotation=0.1,
 #: ``none`` renders the nominal scene.
 DR_PRESETS: dict[str, DRConfig] = {
     "train": DRConfig(background="train", resample="step"),
-    "train-wide": DRConfig(background="wide", background_count=1024, resample="step"),
+    "train-wide": _WIDE,
     "train-leaves": DRConfig(background="leaves", background_count=1024, resample="step"),
-    "train-contrast": DRConfig(background="train", resample="step", low_contrast_share=0.5),
-    "train-wide-contrast": DRConfig(background="wide", background_count=1024, resample="step",
-                                    low_contrast_share=0.5),
+    "train-contrast": DRConfig(background="train", resample="step",
+                               low_contrast_share=_CAMOUFLAGED_SHARE),
+    "train-wide-contrast": dataclasses.replace(_WIDE, low_contrast_share=_CAMOUFLAGED_SHARE),
     "heldout": DRConfig(background="heldout", resample="episode"),
     "train-full": DRConfig(background="train", resample="step", **_FULL),
     "heldout-full": DRConfig(background="heldout", resample="episode", **_FULL),
