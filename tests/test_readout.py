@@ -15,7 +15,7 @@ import torch
 
 from twist_data.errors import ConfigError
 from twist_data.reader import open_dataset
-from twist_data.synth import _DT, SynthConfig, write_synthetic_dataset
+from twist_data.synth import _DT, SYNTH_MIRROR, SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
 from twist_models.config import (
     MLPConfig,
@@ -29,6 +29,7 @@ from twist_models.config import (
 from twist_models.distillation import Distillation, distil_preset
 from twist_models.frame_targets import FrameRows
 from twist_models.losses import readout_loss
+from twist_models.networks import ImageEncoder
 from twist_models.readout import (
     MAX_ATYPICAL_SHARE,
     pair_velocities,
@@ -327,3 +328,106 @@ def test_the_readout_leaves_out_rare_far_frames_but_not_a_phase_of_the_task() ->
     with pytest.raises(ConfigError, match="readout_frames must be one of auto, typical, all, "
                                           "got 'most'"):
         distil_preset("tiny", "readout", readout_frames="most")
+
+
+def _mirrored(rows: FrameRows) -> ReadOutConfig:
+    config = _paired(rows)
+    return dataclasses.replace(config, mirror=tuple(SYNTH_MIRROR[i] for i in config.read))
+
+
+def test_a_mirror_averaged_readout_reads_a_mirrored_view_as_the_mirrored_state(inputs) -> None:
+    dataset, _, teacher, rows = inputs
+    torch.manual_seed(1)
+    student = Student(student_preset("tiny", teacher.config, readout=_mirrored(rows))).eval()
+    data = open_dataset(dataset)
+    images = np.empty((4, *data.spec.image_shape), np.uint8)
+    data.read_frames(np.arange(4), np.zeros(4, int), images)
+    image = torch.as_tensor(images)
+    mirror = torch.tensor(student.readout.config.mirror)
+    with torch.no_grad():
+        _, read = student.step_embed(image, None)
+        _, read_of_mirror = student.step_embed(image.flip(-2), None)
+        # By hand: the mean of both readings, the mirror's mirrored back, x kept and the
+        # (cos, sin) pair put on the unit circle.
+        ro = student.readout
+        mean = (ro.read(student.encoder(image)) + mirror * ro.read(student.encoder(
+            image.flip(-2)))) / 2
+    torch.testing.assert_close(read[:, 0], mean[:, 0])
+    torch.testing.assert_close(read[:, 1:], mean[:, 1:] / mean[:, 1:].norm(dim=-1, keepdim=True))
+    # Averaged over the mirror, the reading is mirror-symmetric whatever the weights.
+    torch.testing.assert_close(read_of_mirror, mirror * read)
+    plain = Student(student_preset("tiny", teacher.config, readout=_paired(rows))).eval()
+    plain.load_state_dict(student.state_dict())
+    with torch.no_grad():
+        assert not torch.allclose(plain.step_embed(image.flip(-2), None)[1],
+                                  mirror * plain.step_embed(image, None)[1], atol=1e-3)
+
+
+def test_mirror_augmentation_mirrors_each_frames_state_with_it(inputs, tmp_path: Path,
+                                                                monkeypatch) -> None:
+    from twist_models.readout import StateReadOut
+
+    dataset, teacher_path, _, _ = inputs
+    seen: list[tuple[torch.Tensor, torch.Tensor]] = []
+    encode = ImageEncoder.forward
+
+    def recording_encoder(self, image: torch.Tensor) -> torch.Tensor:
+        if torch.is_grad_enabled():  # the first stage's training pass
+            seen.append((image.detach().clone(), None))
+        return encode(self, image)
+
+    loss = StateReadOut.loss
+
+    def recording_loss(self, features, state, *args):
+        if seen and seen[-1][1] is None:
+            seen[-1] = (seen[-1][0], state.clone())
+        return loss(self, features, state, *args)
+
+    monkeypatch.setattr(ImageEncoder, "forward", recording_encoder)
+    monkeypatch.setattr(StateReadOut, "loss", recording_loss)
+    config = distil_preset("tiny", "readout", readout_mirror="augment", frame_steps=3,
+                           frame_eval_every=3, frame_batch=32)
+    summary = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
+    assert Agent.load(summary.agent).config.student.readout.mirror == (-1.0, 1.0, -1.0)
+    data = open_dataset(dataset)
+    states = torch.as_tensor(data.column("state"))
+    frames = np.empty((1, *data.spec.image_shape), np.uint8)
+    flipped = 0
+    for images, state in seen:
+        for image, target in zip(images[:, 0], state, strict=True):
+            # Find the frame of D this sample is (its state is D's or D's mirrored) ...
+            plain = (states - target).abs().sum(-1).argmin()
+            mirrored = (states * torch.tensor(SYNTH_MIRROR) - target).abs().sum(-1).argmin()
+            is_mirrored = bool(torch.allclose(states[mirrored] * torch.tensor(SYNTH_MIRROR),
+                                              target)
+                               and not torch.allclose(states[plain], target))
+            step = int(mirrored if is_mirrored else plain)
+            for view in range(data.spec.views):
+                data.read_frames(np.array([step]), np.array([view]), frames)
+                expected = torch.as_tensor(frames[0])
+                if torch.equal(image, expected.flip(-2) if is_mirrored else expected):
+                    break
+            else:
+                raise AssertionError(f"a frame of step {step} does not match its state")
+            flipped += is_mirrored
+    assert 0.3 < flipped / (32 * len(seen)) < 0.7
+
+
+def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Path,
+                                                           monkeypatch) -> None:
+    with pytest.raises(ConfigError, match="readout_mirror must be one of none, average, "
+                                          "augment, got 'flip'"):
+        distil_preset("tiny", "readout", readout_mirror="flip")
+    with pytest.raises(ConfigError, match="only a read-out student"):
+        distil_preset("tiny", "dense", readout_mirror="average")
+    with pytest.raises(ConfigError, match=r"a sign \(\+1 or -1\) per read component \(3\)"):
+        dataclasses.replace(_paired(inputs[3]), mirror=(-1.0, 1.0))
+    from twist_models.stages import distill as stage
+
+    monkeypatch.setattr(stage, "state_mirror", lambda task: ())
+    with pytest.raises(DistilError, match="task 'synthetic-cartpole' declares no mirror "
+                                          "symmetry for its 5-component state"):
+        distil(inputs[0], tmp_path / "run", distil_preset("tiny", "readout",
+                                                          readout_mirror="average"),
+               teacher=inputs[1])
+    assert not (tmp_path / "run").exists()

@@ -25,6 +25,9 @@ from twist_data.writer import ShardWriter
 log = logging.getLogger(__name__)
 
 SYNTH_TASK = "synthetic-cartpole"
+#: The synthetic state's signs in the mirrored picture (drawn about the image's centre
+#: column): x, cos, sin | x_dot, theta_dot, as cartpole-balance's ``TaskSpec.mirror``.
+SYNTH_MIRROR = (-1.0, 1.0, -1.0, -1.0, -1.0)
 _DT = 0.05
 
 

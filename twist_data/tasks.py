@@ -35,14 +35,21 @@ class TaskSpec:
     model_fields: tuple[tuple[str, str], ...] = ()
     """Model entries the task changes per episode and that show in renders, as (field, element):
     appended to the physics vector so that restoring it reproduces the picture."""
+    mirror: tuple[float, ...] = ()
+    """The sign each component of the state vector takes when the rendered view is mirrored
+    left to right: the camera sits in the world's x = 0 plane facing along y, so the mirror is
+    the reflection x -> -x, a symmetry of the task's dynamics. A read-out may average over it
+    (``DistilConfig.readout_mirror``); empty where not declared."""
 
 
 #: The six tasks of the paper's Table I.
 TASKS: dict[str, TaskSpec] = {
     spec.name: spec
     for spec in (
-        TaskSpec("cup-catch", "ball_in_cup", "catch"),
-        TaskSpec("cartpole-balance", "cartpole", "balance"),
+        # position (cup x, cup z, ball x, ball z), velocity (the same four).
+        TaskSpec("cup-catch", "ball_in_cup", "catch", mirror=(-1, 1, -1, 1, -1, 1, -1, 1)),
+        # position (cart x, cos, sin of the pole's angle), velocity (cart, pole).
+        TaskSpec("cartpole-balance", "cartpole", "balance", mirror=(-1, 1, -1, -1, -1)),
         TaskSpec("cheetah-run", "cheetah", "run"),
         TaskSpec("hopper-stand", "hopper", "stand"),
         TaskSpec("walker-walk", "walker", "walk"),
@@ -62,6 +69,17 @@ def _full_physics() -> int:
     import mujoco
 
     return int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+
+
+def state_mirror(name: str) -> tuple[float, ...]:
+    """The signs of task ``name``'s state components in the mirrored view
+    (:attr:`TaskSpec.mirror`, the synthetic cartpole's included); empty where none is
+    declared."""
+    from twist_data.synth import SYNTH_MIRROR, SYNTH_TASK
+
+    if name == SYNTH_TASK:
+        return SYNTH_MIRROR
+    return tuple(float(v) for v in TASKS[name].mirror) if name in TASKS else ()
 
 
 def task_spec(name: str) -> TaskSpec:

@@ -317,9 +317,17 @@ class ReadOutConfig:
     velocity on D (1 / the time between frames, up to the integrator's lag)."""
     encoder: MLPConfig = field(default_factory=MLPConfig)
     """The teacher's state encoder (copied with its weights and kept fixed)."""
+    mirror: tuple[float, ...] = ()
+    """Per component of ``read``, the sign it takes when the view is mirrored left to right
+    (the task's ``TaskSpec.mirror``): given, each image is read as the mean of its own reading
+    and its mirror image's, mirrored back; empty, as it is."""
 
     def __post_init__(self) -> None:
         require_positive(self, "state_dim")
+        if self.mirror and (len(self.mirror) != len(self.read)
+                            or any(abs(v) != 1 for v in self.mirror)):
+            raise ConfigError(f"mirror needs a sign (+1 or -1) per read component "
+                              f"({len(self.read)}), got {list(self.mirror)}")
         derived = [v[0] for v in self.velocities]
         every = [*self.read, *derived]
         if sorted(every) != list(range(self.state_dim)):

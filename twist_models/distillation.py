@@ -139,6 +139,12 @@ class DistilConfig:
     component within :data:`~twist_models.readout.TYPICAL_SPREADS` robust spreads of its
     median), ``all``, or ``auto``: typical unless more than
     :data:`~twist_models.readout.MAX_ATYPICAL_SHARE` of D is not (then all)."""
+    readout_mirror: str = "none"
+    """How a read-out student uses the task's left-right mirror symmetry
+    (``TaskSpec.mirror``): ``none``; ``average``, each image read as the mean of its own
+    reading and its mirror image's, mirrored back (acting and windows; twice the CNN passes);
+    ``augment``, that, and the first stage trains on each frame mirrored with probability 1/2,
+    its state mirrored with it (not in the paper; docs/experiments.md)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -223,6 +229,10 @@ class DistilConfig:
         require_choice(self, "readout_weights", ("robust", "sensitivity", "frame"))
         require_choice(self, "readout_frames", ("auto", "typical", "all"))
         require_choice(self, "frame_augment", ("none", "colour"))
+        require_choice(self, "readout_mirror", READOUT_MIRRORS)
+        if self.readout_mirror != "none" and not self.readout:
+            raise ConfigError(f"readout_mirror={self.readout_mirror!r} averages a read-out "
+                              "over the mirror image; only a read-out student (readout) has one")
         require_choice(self, "precision", PRECISIONS)
         require_choice(self, "window_start", WINDOW_STARTS)
         require_choice(self, "resident_data", ("auto", "on", "off"))
@@ -265,6 +275,8 @@ class DistilConfig:
 #: (:mod:`twist_models.readout`), its read-out trained on single frames; Eq. 3/4 through the
 #: filter only if ``steps`` asks (docs/design.md, "Recipes", and docs/results.md for what
 #: each part was measured to give).
+#: Ways a read-out student may use the task's mirror symmetry (``readout_mirror``).
+READOUT_MIRRORS = ("none", "average", "augment")
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {},
     "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0,

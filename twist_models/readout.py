@@ -170,6 +170,9 @@ class StateReadOut(nn.Module):
         self.register_buffer("mean", torch.zeros(len(config.read)))
         self.register_buffer("scale", torch.ones(len(config.read)))
         self.register_buffer("gains", torch.tensor(config.gains, dtype=torch.float32))
+        # From the config, so not saved: bundles written before mirroring existed still load.
+        self.register_buffer("mirror", torch.tensor(config.mirror, dtype=torch.float32),
+                             persistent=False)
         self.encoder = StateEncoder(config.state_dim, config.encoder)
         self.out_dim = self.encoder.out_dim
         position = {i: k for k, i in enumerate(config.read)}
@@ -220,10 +223,15 @@ class StateReadOut(nn.Module):
         [..., S] -> a float."""
         return float(self.errors(self.read(features), state).pow(2).mean().sqrt())
 
-    def positions(self, features: torch.Tensor) -> torch.Tensor:
+    def positions(self, features: torch.Tensor, mirrored: torch.Tensor | None = None
+                  ) -> torch.Tensor:
         """What the filter is handed: the read components, a (cos, sin) pair put on the
-        unit circle (trained for its angle, :meth:`errors`): [..., F] -> [..., R]."""
+        unit circle (trained for its angle, :meth:`errors`): [..., F] -> [..., R]. With the
+        features of the mirrored image (``mirrored`` [..., F]), the mean of both readings,
+        the mirror's mirrored back (``config.mirror``)."""
         read = self.read(features)
+        if mirrored is not None:
+            read = (read + self.mirror * self.read(mirrored)) / 2
         if not self._angles:
             return read
         parts = list(read.unbind(-1))

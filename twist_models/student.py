@@ -44,7 +44,7 @@ class Student(nn.Module):
         [B, T] -> [B, T, frames * E] (see :func:`stack_frames`), or for a read-out student
         the teacher's embedding of the state read along them [B, T, E']."""
         if self.readout is not None:
-            positions = self.readout.positions(self.encoder(image))
+            positions = self._read_positions(image)
             return self._embed_state(self.readout.window_state(positions, is_first))
         return stack_frames(self.encoder(image), is_first, self.config.frames)
 
@@ -55,10 +55,17 @@ class Student(nn.Module):
         history): the embeddings of earlier frames (:func:`step_frames`), or a read-out
         student's last read-out [N, R]."""
         if self.readout is not None:
-            positions = self.readout.positions(self.encoder(image))
+            positions = self._read_positions(image)
             previous = positions if history is None else history
             return self._embed_state(self.readout.state(positions, previous)), positions
         return step_frames(self.encoder(image), history, self.config.frames)
+
+    def _read_positions(self, image: torch.Tensor) -> torch.Tensor:
+        # Averaging over the view's mirror image, where the read-out asks for it, halves the
+        # error a background it never saw adds to one reading (docs/experiments.md, "Does
+        # reading the mirror image too hold the lost scenes?").
+        mirrored = (self.encoder(image.flip(-2)) if self.readout.config.mirror else None)
+        return self.readout.positions(self.encoder(image), mirrored)
 
     def _embed_state(self, state: torch.Tensor) -> torch.Tensor:
         # In float32 whatever autocast the CNN ran under: this is the teacher's encoder.

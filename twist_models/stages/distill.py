@@ -45,6 +45,7 @@ from twist_data.sampler import (
     window_problem,
 )
 from twist_data.seeding import derived_seed
+from twist_data.tasks import state_mirror
 from twist_models.agent import Agent
 from twist_models.augmentation import colour_jitter
 from twist_models.checkpoint import (
@@ -167,7 +168,8 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     student_config = student_preset(config.student, teacher_model.config, data.spec.image_height,
                                     config.frames, config.encoder_norm,
                                     state_head=config.state_weight > 0,
-                                    readout=_pair_readout(data, rows, teacher_model)
+                                    readout=_pair_readout(data, rows, teacher_model,
+                                                          config.readout_mirror)
                                     if rows is not None else None)
     _check_output(out, config, student_config, resume)
     rank, world = _rank_and_world()
@@ -207,15 +209,32 @@ def _training_rows(data: MatchingDataset, config: DistilConfig) -> FrameRows:
                                                                config.holdout_every)))
 
 
-def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher) -> ReadOutConfig:
-    """What a read-out student reads and derives, measured on D's training steps."""
+def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher,
+                  mirror: str = "none") -> ReadOutConfig:
+    """What a read-out student reads and derives, measured on D's training steps, and the
+    mirror signs of what it reads where ``mirror`` (``readout_mirror``) asks for them."""
     wm = teacher.config.world_model
     if wm.state_hidden:
         raise DistilError(f"the readout recipe hands the teacher the whole state it read; this "
                           f"teacher never reads components {list(wm.state_hidden)} "
                           "(state_hidden)")
-    return pair_velocities(rows.state.numpy(), rows.steps == rows.episode_start,
-                           data.spec.state_layout, wm.state_mlp, data.spec.task)
+    readout = pair_velocities(rows.state.numpy(), rows.steps == rows.episode_start,
+                              data.spec.state_layout, wm.state_mlp, data.spec.task)
+    if mirror == "none":
+        return readout
+    signs = _mirror(data)
+    return dataclasses.replace(readout, mirror=tuple(signs[i] for i in readout.read))
+
+
+def _mirror(data: MatchingDataset) -> tuple[float, ...]:
+    """The sign of each of D's state components in the mirrored view (``TaskSpec.mirror``);
+    a task that declares none, or one whose state D records at another length, is refused."""
+    task = data.spec.task
+    signs = state_mirror(task)
+    if len(signs) != data.spec.state_dim:
+        raise DistilError(f"task {task!r} declares no mirror symmetry for its "
+                          f"{data.spec.state_dim}-component state; set readout_mirror=none")
+    return signs
 
 
 def _run_folder(out: Path) -> RunFolder:
@@ -481,6 +500,8 @@ class _Run:
         params = [p for p in self.student.parameters() if p.requires_grad]
         jitter = torch.Generator().manual_seed(derived_seed(c.seed, 9, self.frame_updates,
                                                             self.rank))
+        mirror = (torch.tensor(_mirror(self.data)) if c.readout_mirror == "augment"
+                  else None)
         sums: dict[str, float] = {}
         done, spent, wall = 0, 0.0, time.perf_counter()
         log.info("frame stage: %d updates of %d frames", c.frame_steps - self.frame_updates,
@@ -488,6 +509,10 @@ class _Run:
         while self.frame_updates < c.frame_steps:
             tick = time.perf_counter()
             batch = batches.batch()
+            if mirror is not None:  # each frame mirrored with probability 1/2, with its state
+                flip = torch.rand(len(batch["state"]), generator=jitter) < 0.5
+                batch["image"][flip] = batch["image"][flip].flip(-2)
+                batch["state"][flip] = batch["state"][flip] * mirror
             if c.frame_augment == "colour":
                 batch["image"] = colour_jitter(batch["image"], jitter)
             batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}

@@ -1,0 +1,194 @@
+"""Which read-out head keeps a cartpole read-out unbiased on backgrounds it never saw?
+
+The read-out student loses held-out scenes in which its reading of the pole's angle is off
+by a constant (a bias of 1-3 degrees makes the teacher's filter chase a lean that is not there,
+docs/experiments.md). This screens heads on the same CNN trunk, trained the same number of
+single-frame updates on D's typical frames with the read-out recipe's own loss
+(:class:`twist_models.readout.StateReadOut`, configured as a trained read-out student is),
+and measures each on a *lean sweep*: in each of ``twist-eval --dr heldout``'s first
+``--scenes`` scenes, the pole at -10..10 degrees (1-degree steps) and the cart at five
+positions, at rest. Per scene: the angle's bias (mean error) and RMS error, near upright
+(within 3 degrees) too, and the cart's RMS error; summarised over scenes. A static sweep
+reads no velocity and runs no filter: it is a screen, a student is judged by its returns.
+
+Heads:
+* ``linear``: the recipe's: DreamerV2's four convolutions flattened into a linear map.
+* ``keypoints<k>``: the first ``k`` convolutions, a 1x1 convolution to 32 maps, a spatial
+  soft-argmax per map (Levine et al. 2016's deep spatial autoencoder) and a linear map from
+  the 32 expected positions, so that a background's texture can move the reading only where
+  it wins a map's peak.
+
+``python experiments/readout_heads.py RUN [--heads linear,keypoints3] [--updates 10000]
+[--scenes 30] [--agent AGENT]`` with RUN a main-job folder holding ``dataset`` and a read-out
+``student``; ``--agent`` sweeps an agent bundle as it is, without training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from twist_data.randomisation import dr_preset
+from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.render import DRRenderer
+from twist_data.seeding import evaluation_episode_seed
+from twist_data.tasks import TaskEnv
+from twist_models.agent import Agent
+from twist_models.networks import ImageEncoder
+from twist_models.readout import StateReadOut, typical
+
+#: Where cartpole's physics vector holds the cart's position and the pole's hinge angle.
+CART_X, HINGE = 1, 2
+SWEEP_DEGREES = np.arange(-10.0, 10.5, 1.0)
+SWEEP_X = (-0.8, -0.4, 0.0, 0.4, 0.8)
+
+
+class KeypointHead(nn.Module):
+    """The CNN's first ``layers`` convolutions -> ``maps`` soft-argmax positions -> read."""
+
+    def __init__(self, encoder: ImageEncoder, layers: int, maps: int, outputs: int) -> None:
+        super().__init__()
+        self.trunk = encoder.net[: 3 * layers]  # each layer: convolution, norm, ELU
+        channels = [m for m in self.trunk if isinstance(m, nn.Conv2d)][-1].out_channels
+        self.maps = nn.Conv2d(channels, maps, 1)
+        self.log_temperature = nn.Parameter(torch.zeros(()))
+        self.head = nn.Linear(2 * maps, outputs)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        maps = self.maps(self.trunk(x)).float()
+        h, w = maps.shape[-2:]
+        weights = torch.softmax(maps.flatten(2) * self.log_temperature.exp(), -1)
+        ys = torch.linspace(-1, 1, h, device=x.device).repeat_interleave(w)
+        xs = torch.linspace(-1, 1, w, device=x.device).repeat(h)
+        points = torch.cat([(weights * xs).sum(-1), (weights * ys).sum(-1)], -1)
+        return self.head(points)
+
+
+class LinearHead(nn.Module):
+    def __init__(self, encoder: ImageEncoder, outputs: int) -> None:
+        super().__init__()
+        self.trunk = encoder.net
+        self.head = nn.Linear(encoder.out_dim, outputs)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.trunk(x).flatten(1).float())
+
+
+def images_in(image: torch.Tensor) -> torch.Tensor:
+    """uint8 [N, H, W, 3] -> float [-0.5, 0.5] channels-last NCHW, as the student's CNN."""
+    x = (image.float() / 255.0 - 0.5).permute(0, 3, 1, 2)
+    return x.contiguous(memory_format=torch.channels_last)
+
+
+def train(model: nn.Module, readout: StateReadOut, data: MatchingDataset, steps: np.ndarray,
+          updates: int, seed: int) -> float:
+    rng = np.random.default_rng(seed)
+    states = torch.as_tensor(data.column("state"), dtype=torch.float32)
+    optimiser = torch.optim.Adam(model.parameters(), lr=3e-4, eps=1e-5)
+    buffer = np.empty((64, *data.spec.image_shape), np.uint8)
+    start = time.perf_counter()
+    for update in range(updates):
+        rows = steps[rng.integers(0, steps.size, 64)]
+        data.read_frames(rows, rng.integers(0, data.spec.views, 64), buffer)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            out = model(images_in(torch.from_numpy(buffer)))
+        read = out.float() * readout.scale + readout.mean
+        loss = F.huber_loss(readout.errors(read, states[rows]), torch.zeros_like(read))
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(model.parameters(), 100.0)
+        optimiser.step()
+        if (update + 1) % 1000 == 0:
+            print(json.dumps({"update": update + 1, "loss": round(float(loss), 4),
+                              "s": round(time.perf_counter() - start, 1)}), flush=True)
+    return time.perf_counter() - start
+
+
+def sweep(read: Callable[[torch.Tensor], torch.Tensor], scenes: int) -> dict:
+    """Per held-out scene the read-out's errors over the lean sweep, and their summary."""
+    config = dr_preset("heldout").replace(resample="episode")
+    env = TaskEnv("cartpole-balance")
+    env.reset(seed=0)
+    base = env.physics_state()
+    base[HINGE + 1:] = 0.0
+    truth = np.array([(x, math.radians(a)) for x in SWEEP_X for a in SWEEP_DEGREES])
+    near = np.abs(truth[:, 1]) <= math.radians(3.0)
+    rows = []
+    with DRRenderer("cartpole-balance", config, 64, views=1, supersample=2) as renderer:
+        sampler = renderer.sampler(0)
+        for i in range(scenes):
+            sampler.begin_episode(evaluation_episode_seed(0, i))
+            params = sampler.sample()
+            frames = []
+            for x, angle in truth:
+                physics = base.copy()
+                physics[CART_X], physics[HINGE] = x, angle
+                frames.append(renderer.render(physics, params)[0])
+            with torch.no_grad():
+                pos = read(torch.as_tensor(np.stack(frames))).numpy()
+            error = np.degrees(np.arctan2(pos[:, 2], pos[:, 1]) - truth[:, 1])
+            rows.append({"scene": i, "bias": float(error.mean()),
+                         "rms": float(np.sqrt((error ** 2).mean())),
+                         "near_rms": float(np.sqrt((error[near] ** 2).mean())),
+                         "x_rms": float(np.sqrt(((pos[:, 0] - truth[:, 0]) ** 2).mean()))})
+    bias = np.abs([r["bias"] for r in rows])
+    return {"mean_abs_bias_deg": round(float(bias.mean()), 3),
+            "scenes_bias_over_1deg": int((bias > 1.0).sum()),
+            "median_near_rms_deg": round(float(np.median([r["near_rms"] for r in rows])), 3),
+            "mean_rms_deg": round(float(np.mean([r["rms"] for r in rows])), 3),
+            "mean_x_rms": round(float(np.mean([r["x_rms"] for r in rows])), 4),
+            "per_scene_bias": [round(r["bias"], 2) for r in rows]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--heads", default="linear,keypoints3")
+    parser.add_argument("--updates", type=int, default=10000)
+    parser.add_argument("--scenes", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--agent", type=Path, help="sweep this agent bundle instead")
+    args = parser.parse_args()
+    torch.set_num_threads(2)
+    if args.agent is not None:
+        agent = Agent.load(args.agent)
+        student = agent.student
+        result = sweep(lambda im: student.readout.read(student.encoder(im)), args.scenes)
+        print(json.dumps({"head": "agent", "agent": str(args.agent), **result}))
+        return
+    trained = Agent.load(args.run / "student" / "agent.pt").student
+    data = open_dataset(args.run / "dataset")
+    states = data.column("state")
+    keep = typical(states, trained.readout.config, trained.readout.mean.numpy(),
+                   trained.readout.scale.numpy())
+    steps = np.flatnonzero(keep)
+    for name in args.heads.split(","):
+        torch.manual_seed(args.seed)
+        encoder = ImageEncoder(trained.config.cnn)
+        readout = StateReadOut(trained.readout.config, encoder.out_dim)
+        readout.load_state_dict(trained.readout.state_dict())  # standardisation and layout
+        outputs = len(readout.config.read)
+        model = (LinearHead(encoder, outputs) if name == "linear"
+                 else KeypointHead(encoder, int(name.removeprefix("keypoints")), 32, outputs))
+        seconds = train(model, readout, data, steps, args.updates, args.seed)
+        model.eval()
+
+        def read(image: torch.Tensor, model: nn.Module = model,
+                 readout: StateReadOut = readout) -> torch.Tensor:
+            return model(images_in(image)).float() * readout.scale + readout.mean
+
+        print(json.dumps({"head": name, "updates": args.updates, "train_s": round(seconds, 1),
+                          **sweep(read, args.scenes)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
