@@ -416,7 +416,7 @@ def test_mirror_augmentation_mirrors_each_frames_state_with_it(inputs, tmp_path:
 def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Path,
                                                            monkeypatch) -> None:
     with pytest.raises(ConfigError, match="readout_mirror must be one of none, average, "
-                                          "augment, got 'flip'"):
+                                          "augment, auto, got 'flip'"):
         distil_preset("tiny", "readout", readout_mirror="flip")
     with pytest.raises(ConfigError, match="only a read-out student"):
         distil_preset("tiny", "dense", readout_mirror="average")
@@ -431,3 +431,16 @@ def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Pat
                                                           readout_mirror="average"),
                teacher=inputs[1])
     assert not (tmp_path / "run").exists()
+
+
+def test_auto_mirroring_follows_the_tasks_declaration(inputs, tmp_path: Path,
+                                                     monkeypatch) -> None:
+    from twist_models.stages import distill as stage
+
+    dataset, teacher_path, _, _ = inputs
+    config = distil_preset("tiny", "readout", readout_mirror="auto", frame_eval_every=2)
+    declared = distil(dataset, tmp_path / "declared", config, teacher=teacher_path)
+    assert Agent.load(declared.agent).config.student.readout.mirror == (-1.0, 1.0, -1.0)
+    monkeypatch.setattr(stage, "state_mirror", lambda task: ())
+    undeclared = distil(dataset, tmp_path / "undeclared", config, teacher=teacher_path)
+    assert Agent.load(undeclared.agent).config.student.readout.mirror == ()

@@ -144,7 +144,8 @@ class DistilConfig:
     (``TaskSpec.mirror``): ``none``; ``average``, each image read as the mean of its own
     reading and its mirror image's, mirrored back (acting and windows; twice the CNN passes);
     ``augment``, that, and the first stage trains on each frame mirrored with probability 1/2,
-    its state mirrored with it (not in the paper; docs/experiments.md)."""
+    its state mirrored with it (not in the paper; docs/experiments.md); ``auto``:
+    :data:`AUTO_MIRROR` where the task declares its mirror, ``none`` elsewhere."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -276,7 +277,9 @@ class DistilConfig:
 #: filter only if ``steps`` asks (docs/design.md, "Recipes", and docs/results.md for what
 #: each part was measured to give).
 #: Ways a read-out student may use the task's mirror symmetry (``readout_mirror``).
-READOUT_MIRRORS = ("none", "average", "augment")
+READOUT_MIRRORS = ("none", "average", "augment", "auto")
+#: What ``readout_mirror=auto`` does where the task declares its mirror (elsewhere: none).
+AUTO_MIRROR = "augment"
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {},
     "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0,

@@ -64,6 +64,7 @@ from twist_models.config import (
 from twist_models.curves import plot_agreement
 from twist_models.device import compile_mode, precision_autocast, resolve_device
 from twist_models.distillation import (
+    AUTO_MIRROR,
     KEYS,
     DistilConfig,
     Distillation,
@@ -169,7 +170,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
                                     config.frames, config.encoder_norm,
                                     state_head=config.state_weight > 0,
                                     readout=_pair_readout(data, rows, teacher_model,
-                                                          config.readout_mirror)
+                                                          _mirror_mode(config, data))
                                     if rows is not None else None)
     _check_output(out, config, student_config, resume)
     rank, world = _rank_and_world()
@@ -224,6 +225,13 @@ def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher,
         return readout
     signs = _mirror(data)
     return dataclasses.replace(readout, mirror=tuple(signs[i] for i in readout.read))
+
+
+def _mirror_mode(config: DistilConfig, data: MatchingDataset) -> str:
+    """``readout_mirror`` for this D: ``auto`` resolved by whether its task declares a mirror."""
+    if config.readout_mirror == "auto":
+        return AUTO_MIRROR if state_mirror(data.spec.task) else "none"
+    return config.readout_mirror
 
 
 def _mirror(data: MatchingDataset) -> tuple[float, ...]:
@@ -500,7 +508,7 @@ class _Run:
         params = [p for p in self.student.parameters() if p.requires_grad]
         jitter = torch.Generator().manual_seed(derived_seed(c.seed, 9, self.frame_updates,
                                                             self.rank))
-        mirror = (torch.tensor(_mirror(self.data)) if c.readout_mirror == "augment"
+        mirror = (torch.tensor(_mirror(self.data)) if _mirror_mode(c, self.data) == "augment"
                   else None)
         sums: dict[str, float] = {}
         done, spent, wall = 0, 0.0, time.perf_counter()
