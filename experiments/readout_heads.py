@@ -20,7 +20,8 @@ Heads:
 
 ``python experiments/readout_heads.py RUN [--heads linear,keypoints3] [--updates 10000]
 [--scenes 30] [--agent AGENT]`` with RUN a main-job folder holding ``dataset`` and a read-out
-``student``; ``--agent`` sweeps an agent bundle as it is, without training.
+``student``; ``--agent`` sweeps an agent bundle without training: each image alone, and, where the agent
+reads the mirror image too (``readout_mirror``), as it acts.
 """
 
 from __future__ import annotations
@@ -160,10 +161,13 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(2)
     if args.agent is not None:
-        agent = Agent.load(args.agent)
-        student = agent.student
-        result = sweep(lambda im: student.readout.read(student.encoder(im)), args.scenes)
-        print(json.dumps({"head": "agent", "agent": str(args.agent), **result}))
+        student = Agent.load(args.agent).student
+        readings = {"image": lambda im: student.readout.read(student.encoder(im))}
+        if student.readout.config.mirror:  # the agent's own reading: the mean with the mirror's
+            readings["mirror-averaged"] = student._read_positions
+        for reading, read in readings.items():
+            print(json.dumps({"head": "agent", "agent": str(args.agent), "reading": reading,
+                              **sweep(read, args.scenes)}), flush=True)
         return
     trained = Agent.load(args.run / "student" / "agent.pt").student
     data = open_dataset(args.run / "dataset")

@@ -284,7 +284,8 @@ RECIPES: dict[str, dict[str, Any]] = {
     "paper": {},
     "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0,
               "precision": "auto", "window_start": "teacher", "shared_draws": False},
-    "readout": {"readout": True, "encoder_norm": "layer", "precision": "auto"},
+    "readout": {"readout": True, "encoder_norm": "layer", "precision": "auto",
+                "readout_mirror": "auto"},
 }
 #: Updates of each recipe's single-frame stage at each size preset. One update of 64 frames
 #: costs ~1/20 of a ``quick`` update on windows (36 against ~1.5 per second on the 2-core CPU,
