@@ -266,6 +266,11 @@ class DistilConfig:
                              rare_states=self.rare_states if split == "train" else 0.0)
 
 
+#: Ways a read-out student may use the task's mirror symmetry (``readout_mirror``).
+READOUT_MIRRORS = ("none", "average", "augment", "auto")
+#: What ``readout_mirror=auto`` does where the task declares its mirror (elsewhere: none).
+AUTO_MIRROR = "augment"
+
 #: Recipes by name: what each sets on top of a size preset. ``paper``: Eq. 3 and 4 alone
 #: (with the student's RSSM started from the teacher's, which every preset does). ``dense``:
 #: the same, plus the per-frame targets of :mod:`twist_models.frame_targets`, first alone on
@@ -274,12 +279,9 @@ class DistilConfig:
 #: teacher's), as when it acts; and a layer-normalised CNN. ``readout``: a student that reads
 #: the teacher's state from each image into the teacher's own fixed filter
 #: (:mod:`twist_models.readout`), its read-out trained on single frames; Eq. 3/4 through the
-#: filter only if ``steps`` asks (docs/design.md, "Recipes", and docs/results.md for what
-#: each part was measured to give).
-#: Ways a read-out student may use the task's mirror symmetry (``readout_mirror``).
-READOUT_MIRRORS = ("none", "average", "augment", "auto")
-#: What ``readout_mirror=auto`` does where the task declares its mirror (elsewhere: none).
-AUTO_MIRROR = "augment"
+#: filter only if ``steps`` asks, reading each image with its mirror image's where the task
+#: declares its mirror (docs/design.md, "Recipes", and docs/results.md for what each part
+#: was measured to give).
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {},
     "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0,
