@@ -126,13 +126,13 @@ def test_heldout_randomisation_is_drawn_once_per_episode(gl, monkeypatch) -> Non
     from twist_data.render import DRRenderer
 
     seen: list[dict[str, np.ndarray]] = []
-    original = DRRenderer.render
+    original = DRRenderer.render_states  # what every render goes through
 
     def spy(self, physics, params, *args, **kwargs):
-        seen.append({k: v.copy() for k, v in params.items()})
+        seen.extend({k: v.copy() for k, v in p.items()} for p in params)
         return original(self, physics, params, *args, **kwargs)
 
-    monkeypatch.setattr(DRRenderer, "render", spy)
+    monkeypatch.setattr(DRRenderer, "render_states", spy)
     config = EvalConfig(task="cartpole-balance", dr="heldout", episodes=2, max_steps=6)
     frames: list[int] = []
     evaluate(ScriptedAgent(_constant(0.0)), config, seed=0,

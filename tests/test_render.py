@@ -316,6 +316,55 @@ def test_render_rejects_bad_input(renderer: DRRenderer, gl: None) -> None:
         DRRenderer("cartpole-balance", dr_preset("train"), 16, 0)
 
 
+def _episode_states(n: int, task: str = "cartpole-balance") -> list[np.ndarray]:
+    env = TaskEnv(task)
+    env.reset(seed=1)
+    rng = np.random.default_rng(0)
+    return [env.step(rng.uniform(-1, 1, env.action_dim)).physics for _ in range(n)]
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_states_drawn_together_are_the_states_drawn_alone(gl: None, supersample: int) -> None:
+    physics = _episode_states(6)
+    with DRRenderer("cartpole-balance", dr_preset("heldout"), 32, 2, supersample) as alone, \
+            DRRenderer("cartpole-balance", dr_preset("heldout"), 32, 2, supersample,
+                       states=6) as together:
+        sampler = alone.sampler(4)
+        sampler.begin_episode()
+        params = [sampler.sample() for _ in physics]
+        expected = np.stack([alone.render(p, q) for p, q in zip(physics, params, strict=True)])
+        batch = together.render_states(physics, params)
+        assert batch.shape == (6, 2, 32, 32, 3)
+        # Place 0 is where a state alone is drawn: pixel-identical. Elsewhere the rasteriser
+        # rounds at another offset, so a pixel may move by one level.
+        np.testing.assert_array_equal(batch[0], expected[0])
+        assert np.abs(batch.astype(int) - expected).max() <= 1
+        assert (batch != expected).mean() < 1e-3
+        # A state's frames depend on its place, not on the states drawn beside it.
+        reordered = together.render_states(physics[:0:-1], params[:0:-1], places=range(5, 0, -1))
+        np.testing.assert_array_equal(reordered, batch[:0:-1])
+        np.testing.assert_array_equal(together.render_states([physics[3]], [params[3]],
+                                                             places=[3])[0], batch[3])
+        with pytest.raises(ConfigError, match="distinct and in"):
+            together.render_states(physics[:2], params[:2], places=[6, 1])
+        with pytest.raises(ConfigError, match="one parameter set and place per state"):
+            together.render_states(physics[:2], params[:1])
+
+
+def test_closing_one_renderer_leaves_another_intact(gl: None) -> None:
+    physics = _episode_states(1)[0]
+    config = dr_preset("heldout")
+    with DRRenderer("cartpole-balance", config, 32, 2, supersample=2) as alone:
+        sampler = alone.sampler(0)
+        sampler.begin_episode()
+        params = sampler.sample()
+        expected = alone.render(physics, params)
+    closed = DRRenderer("cartpole-balance", config, 32, 2, supersample=2)
+    with DRRenderer("cartpole-balance", config, 32, 2, supersample=2) as kept:
+        closed.close()  # while the kept renderer's context is current
+        np.testing.assert_array_equal(kept.render(physics, params), expected)
+
+
 @pytest.mark.parametrize("task", ["cup-catch", "cheetah-run", "hopper-stand", "walker-walk",
                                   "finger-turn_easy"])
 def test_every_task_renders_randomised_views(task: str, gl: None) -> None:

@@ -30,7 +30,7 @@ import functools
 import logging
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -88,13 +88,15 @@ class DRRenderer:
     """
 
     def __init__(self, task: str, config: DRConfig, image_size: int = 64, views: int = 2,
-                 supersample: int = 1) -> None:
+                 supersample: int = 1, states: int = 1) -> None:
         if image_size < 1:
             raise ConfigError(f"image_size must be a positive number of pixels, got {image_size}")
         if views < 1:
             raise ConfigError(f"views (K) must be >= 1, got {views}")
         if supersample < 1:
             raise ConfigError(f"supersample must be >= 1, got {supersample}")
+        if states < 1:
+            raise ConfigError(f"states must be >= 1, got {states}")
         import mujoco
 
         self._mj = mujoco
@@ -102,6 +104,7 @@ class DRRenderer:
         self.config = config
         self.image_size = image_size
         self.views = views
+        self.states = states
         self.supersample = supersample
         side = image_size * supersample
         self._side = side
@@ -115,11 +118,13 @@ class DRRenderer:
         m.vis.quality.offsamples = 0
         m.vis.quality.numslices = RENDER_SLICES
         m.vis.quality.numstacks = RENDER_STACKS
-        self._cols = max(1, min(views, _MAX_FRAMEBUFFER // side))
-        self._rows = math.ceil(views / self._cols)
+        tiles = states * views
+        self._cols = max(1, min(tiles, _MAX_FRAMEBUFFER // side))
+        self._rows = math.ceil(tiles / self._cols)
         if self._rows * side > _MAX_FRAMEBUFFER:
-            raise ConfigError(f"views x image size do not fit a {_MAX_FRAMEBUFFER}² framebuffer: "
-                              f"K={views}, image size {image_size}, supersample {supersample}")
+            raise ConfigError(f"states x views x image size do not fit a {_MAX_FRAMEBUFFER}² "
+                              f"framebuffer: {states} states, K={views}, image size "
+                              f"{image_size}, supersample {supersample}")
         m.vis.global_.offwidth = self._cols * side
         m.vis.global_.offheight = self._rows * side
         self.data = mujoco.MjData(m)
@@ -183,45 +188,70 @@ class DRRenderer:
     def render(self, physics: np.ndarray, params: Mapping[str, np.ndarray],
                out: np.ndarray | None = None) -> np.ndarray:
         """Render the K views of ``physics`` under ``params`` ({name: [K, ...]}) -> [K, H, W, 3]."""
+        return self.render_states([physics], [params], out=None if out is None else out[None])[0]
+
+    def render_states(self, physics: Sequence[np.ndarray],
+                      params: Sequence[Mapping[str, np.ndarray]],
+                      places: Sequence[int] | None = None,
+                      out: np.ndarray | None = None) -> np.ndarray:
+        """Render the K views of several physics states, state i under ``params[i]`` in place
+        ``places[i]`` (default i) of the ``states`` the framebuffer holds, and read them
+        back at once -> [N, K, H, W, 3]. A batch of environments so saves N - 1 read-backs,
+        each of which waits for the GPU to finish drawing.
+
+        A frame depends on its place by at most one level in a few pixels (the rasteriser
+        rounds at another offset): a state drawn in the same place is pixel-identical to
+        :meth:`render` of it alone in place 0 (tested)."""
         mj, m, side = self._mj, self.model, self._side
-        k = self.views
-        params = self._check_params(params)
-        restore_physics(m, self.data, physics, self._task_rows, self.spec.name)
+        n, k = len(physics), self.views
+        places = list(range(n)) if places is None else [int(p) for p in places]
+        if len(params) != n or len(places) != n or n == 0:
+            raise ConfigError(f"render_states needs one parameter set and place per state, "
+                              f"got {n} states, {len(params)} sets, {len(places)} places")
+        if min(places) < 0 or max(places) >= self.states or len(set(places)) != n:
+            raise ConfigError(f"render_states places must be distinct and in [0, "
+                              f"{self.states}), got {places}")
+        checked = [self._check_params(p) for p in params]
         self._gl.make_current()
-        for v in range(k):
-            for row, group in enumerate(self._groups):
-                if group >= 0:
-                    m.mat_rgba[group, :3] = params["colour"][v, row]
-            use_sky = int(params["background"][v]) < 0
-            self._scene.flags[mj.mjtRndFlag.mjRND_SKYBOX] = use_sky
-            mj.mjv_updateScene(m, self.data, self._option, self._perturb, self._camera,
-                               mj.mjtCatBit.mjCAT_ALL, self._scene)
-            self._adjust_scene(float(params["light"][v]), params["camera_shift"][v],
-                               params["camera_rotation"][v])
-            r, c = divmod(v, self._cols)
-            viewport = mj.MjrRect(c * side, (self._rows - 1 - r) * side, side, side)
-            mj.mjr_render(viewport, self._scene, self._context)
-        mj.mjr_readPixels(self._rgb, self._depth,
-                          mj.MjrRect(0, 0, self._cols * side, self._rows * side), self._context)
+        for i in range(n):
+            restore_physics(m, self.data, physics[i], self._task_rows, self.spec.name)
+            for v in range(k):
+                for row, group in enumerate(self._groups):
+                    if group >= 0:
+                        m.mat_rgba[group, :3] = checked[i]["colour"][v, row]
+                self._scene.flags[mj.mjtRndFlag.mjRND_SKYBOX] = int(checked[i]["background"][v]) < 0
+                mj.mjv_updateScene(m, self.data, self._option, self._perturb, self._camera,
+                                   mj.mjtCatBit.mjCAT_ALL, self._scene)
+                self._adjust_scene(float(checked[i]["light"][v]), checked[i]["camera_shift"][v],
+                                   checked[i]["camera_rotation"][v])
+                r, c = divmod(places[i] * k + v, self._cols)
+                viewport = mj.MjrRect(c * side, (self._rows - 1 - r) * side, side, side)
+                mj.mjr_render(viewport, self._scene, self._context)
+        # Tile row r lies at the top of the framebuffer: read only the rows drawn.
+        drawn = math.ceil((max(places) + 1) * k / self._cols)
+        rgb, depth = self._rgb[:drawn * side], self._depth[:drawn * side]
+        mj.mjr_readPixels(rgb, depth, mj.MjrRect(0, (self._rows - drawn) * side,
+                                                 self._cols * side, drawn * side), self._context)
         if out is None:
-            out = np.empty((k, self.image_size, self.image_size, 3), np.uint8)
-        rgb, depth = self._rgb[::-1], self._depth[::-1]  # OpenGL rows run bottom-up
-        for v in range(k):
-            r, c = divmod(v, self._cols)
-            tile = (slice(r * side, (r + 1) * side), slice(c * side, (c + 1) * side))
-            # Composite in the readback buffer itself: it is rewritten by every render.
-            view = rgb[tile]
-            background = int(params["background"][v])
-            if background >= 0:
-                y, x = (int(o) for o in params["background_offset"][v])
-                # copyto with a mask is ~3x faster here than boolean-index assignment.
-                np.copyto(view, self.bank.textures[background, y:y + side, x:x + side],
-                          where=(depth[tile] >= 1.0)[..., None])
-            if self.supersample > 1:
-                out[v] = cv2.resize(view, (self.image_size, self.image_size),
-                                    interpolation=cv2.INTER_AREA)
-            else:
-                out[v] = view
+            out = np.empty((n, k, self.image_size, self.image_size, 3), np.uint8)
+        rgb, depth = rgb[::-1], depth[::-1]  # OpenGL rows run bottom-up
+        for i in range(n):
+            for v in range(k):
+                r, c = divmod(places[i] * k + v, self._cols)
+                tile = (slice(r * side, (r + 1) * side), slice(c * side, (c + 1) * side))
+                # Composite in the readback buffer itself: it is rewritten by every render.
+                view = rgb[tile]
+                background = int(checked[i]["background"][v])
+                if background >= 0:
+                    y, x = (int(o) for o in checked[i]["background_offset"][v])
+                    # copyto with a mask is ~3x faster here than boolean-index assignment.
+                    np.copyto(view, self.bank.textures[background, y:y + side, x:x + side],
+                              where=(depth[tile] >= 1.0)[..., None])
+                if self.supersample > 1:
+                    out[i, v] = cv2.resize(view, (self.image_size, self.image_size),
+                                           interpolation=cv2.INTER_AREA)
+                else:
+                    out[i, v] = view
         return out
 
     def submit(self, physics: np.ndarray, params: Mapping[str, np.ndarray]) -> None:
@@ -275,6 +305,9 @@ class DRRenderer:
     # -- lifetime ----------------------------------------------------------------------------
     def close(self) -> None:
         if self._gl is not None:
+            # GL object names are per context: freed while another renderer's context is
+            # current, they would delete that renderer's framebuffers and textures instead.
+            self._gl.make_current()
             self._context.free()
             self._gl.free()
             self._gl = None

@@ -46,34 +46,48 @@ class EnvWorkerError(TwistError):
 class LocalEnvs:
     """``slots`` environments of ``task`` and their DR samplers, in this process.
 
-    ``render``: draw each step's view (one, under ``dr``) as the step is taken."""
+    ``render``: draw each step's view (one, under ``dr``). The views of all the slots stepped
+    together are drawn in one framebuffer and read back at once (one wait for the GPU), slot i
+    in place ``places[i]`` (default i), so that a slot's pixels do not depend on which other
+    slots are stepped with it, nor on the process (:class:`EnvWorkers` gives each worker's
+    slots their places in the whole batch)."""
 
     def __init__(self, task: str, slots: int, dr: DRConfig, image_size: int = 64,
                  supersample: int = 1, action_repeat: int = 2, seed: int = 0,
-                 max_steps: int | None = None, render: bool = True) -> None:
+                 max_steps: int | None = None, render: bool = True,
+                 places: Sequence[int] | None = None) -> None:
         from twist_data.render import DRRenderer
 
+        self.places = list(range(slots)) if places is None else [int(p) for p in places]
+        if len(self.places) != slots:
+            raise ConfigError(f"LocalEnvs needs one place per slot, got {len(self.places)} "
+                              f"for {slots} slots")
         self.envs = [TaskEnv(task, action_repeat, seed=seed, max_steps=max_steps)
                      for _ in range(slots)]
-        self.renderer = DRRenderer(task, dr, image_size, views=1, supersample=supersample)
+        self.renderer = DRRenderer(task, dr, image_size, views=1, supersample=supersample,
+                                   states=max(self.places) + 1)
         self.samplers = [self.renderer.sampler(seed) for _ in range(slots)]
         self.render = render
 
-    def _observe(self, slot: int, step: Step) -> Observed:
-        image = (self.renderer.render(step.physics, self.samplers[slot].sample())[0]
-                 if self.render else None)
-        return step, image
+    def _observe(self, slots: Sequence[int], steps: list[Step]) -> list[Observed]:
+        if not self.render or not slots:
+            return [(step, None) for step in steps]
+        images = self.renderer.render_states(
+            [step.physics for step in steps], [self.samplers[slot].sample() for slot in slots],
+            places=[self.places[slot] for slot in slots])
+        return [(step, image[0]) for step, image in zip(steps, images, strict=True)]
 
     def reset(self, seeds: Sequence[int]) -> list[Observed]:
         """Start an episode in slots 0..len(seeds)-1, slot i with episode seed ``seeds[i]``."""
-        return [self._observe(slot, self.envs[slot].reset(
-                    seed=s, dynamics=self.samplers[slot].begin_episode(s)))
-                for slot, s in enumerate(seeds)]
+        slots = range(len(seeds))
+        return self._observe(slots, [self.envs[slot].reset(
+            seed=s, dynamics=self.samplers[slot].begin_episode(s)) for slot, s in zip(
+                slots, seeds, strict=True)])
 
     def step(self, slots: Sequence[int], actions: Sequence[np.ndarray]) -> list[Observed]:
         """Step each of ``slots`` with its action (in [-1, 1]); returns their observations."""
-        return [self._observe(slot, self.envs[slot].step(action))
-                for slot, action in zip(slots, actions, strict=True)]
+        return self._observe(slots, [self.envs[slot].step(action)
+                                     for slot, action in zip(slots, actions, strict=True)])
 
     def close(self) -> None:
         self.renderer.close()
@@ -92,7 +106,8 @@ def _serve(conn: Connection) -> None:
         kwargs["dr"] = DRConfig.from_json(kwargs["dr"])
         envs = LocalEnvs(**kwargs)
     except Exception as exc:  # reported to the parent, which raises it there
-        conn.send(("error", (type(exc).__name__, str(exc))))
+        with contextlib.suppress(OSError):  # unless it has already gone
+            conn.send(("error", (type(exc).__name__, str(exc))))
         return
     conn.send(("ready", None))
     with envs:
@@ -133,9 +148,10 @@ class EnvWorkers:
                 pass_fds=[theirs.fileno()]))
             theirs.close()
             self._conns.append(Connection(ours.detach()))
-            own = len(range(worker, slots, self.workers))
-            self._conns[-1].send({"task": task, "slots": own, "dr": dr.to_json(),
-                                  "image_size": image_size, "supersample": supersample,
+            own = list(range(worker, slots, self.workers))
+            self._conns[-1].send({"task": task, "slots": len(own), "places": own,
+                                  "dr": dr.to_json(), "image_size": image_size,
+                                  "supersample": supersample,
                                   "action_repeat": action_repeat, "seed": seed,
                                   "max_steps": max_steps, "render": render})
         try:
