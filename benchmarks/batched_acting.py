@@ -6,10 +6,12 @@ batch N with the environments in W worker processes (``twist-eval --workers``). 
 alone removes N - 1 of the N policy calls per step (on a GPU, their host-device round
 trips); workers also simulate and render the N environments in parallel. Medians of
 ``--repeats`` alternating runs; each run builds its renderer(s) and one simulator per episode
-slot (~70 ms each), and starts its workers, as ``twist-eval`` does. Prints one JSON line.
+slot, and starts its workers, as one ``evaluate`` call does. With ``--steady`` they are made
+before the clock starts, as ``twist-eval`` makes them once for all of an agent's seeds: the
+rate of a long evaluation. Prints one JSON line.
 
     python benchmarks/batched_acting.py [--episodes 16] [--steps 250] [--repeats 3]
-        [--device cpu] [--workers W]
+        [--device cpu] [--workers W] [--steady]
 """
 
 from __future__ import annotations
@@ -24,20 +26,32 @@ import torch
 from twist_data.tasks import TaskEnv
 from twist_models.agent import Agent
 from twist_models.config import AgentConfig, student_preset, teacher_preset
-from twist_models.stages.evaluation import EvalConfig, ImageAgent, StateAgent, evaluate
+from twist_models.stages.evaluation import (
+    EvalConfig,
+    ImageAgent,
+    StateAgent,
+    evaluate,
+    evaluation_envs,
+)
 from twist_models.teacher import Teacher
 
 TASK = "cartpole-balance"
 
 
-def steps_per_second(agent: object, config: EvalConfig, batch: int, workers: int = 1) -> float:
-    start = time.perf_counter()
-    results = evaluate(agent, config, seed=0, batch=batch, workers=workers)
-    return sum(r.steps for r in results) / (time.perf_counter() - start)
+def steps_per_second(agent: object, config: EvalConfig, batch: int, workers: int = 1,
+                     steady: bool = False) -> float:
+    if not steady:
+        start = time.perf_counter()
+        results = evaluate(agent, config, seed=0, batch=batch, workers=workers)
+        return sum(r.steps for r in results) / (time.perf_counter() - start)
+    with evaluation_envs(agent, config, batch, workers) as envs:
+        start = time.perf_counter()
+        results = evaluate(agent, config, seed=0, batch=batch, workers=workers, envs=envs)
+        return sum(r.steps for r in results) / (time.perf_counter() - start)
 
 
-def medians(agent: object, config: EvalConfig, batch: int, repeats: int, workers: int
-            ) -> dict[str, float]:
+def medians(agent: object, config: EvalConfig, batch: int, repeats: int, workers: int,
+            steady: bool = False) -> dict[str, float]:
     """Median agent steps/s alone, with ``batch``, and (``workers`` > 1) with ``batch`` in
     that many worker processes, the variants measured in turn."""
     variants = {"alone": (1, 1), "batched": (batch, 1)}
@@ -46,7 +60,7 @@ def medians(agent: object, config: EvalConfig, batch: int, repeats: int, workers
     samples: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(repeats):
         for name, (n, w) in variants.items():
-            samples[name].append(steps_per_second(agent, config, n, w))
+            samples[name].append(steps_per_second(agent, config, n, w, steady))
     return {name: statistics.median(values) for name, values in samples.items()}
 
 
@@ -58,6 +72,8 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--workers", type=int, default=1,
                         help="also time the batch with its environments in this many processes")
+    parser.add_argument("--steady", action="store_true",
+                        help="make the environments (and start the workers) before the clock")
     args = parser.parse_args()
     torch.manual_seed(0)
     env = TaskEnv(TASK)  # for the state and action sizes
@@ -69,9 +85,10 @@ def main() -> None:
               "oracle": StateAgent(teacher, TASK, device=args.device)}
     config = EvalConfig(task=TASK, dr="heldout", episodes=args.episodes, max_steps=args.steps)
     row: dict[str, object] = {"device": args.device, "episodes": args.episodes,
-                              "steps_per_episode": args.steps, "workers": args.workers}
+                              "steps_per_episode": args.steps, "workers": args.workers,
+                              "steady": args.steady}
     for name, agent in agents.items():
-        rates = medians(agent, config, args.episodes, args.repeats, args.workers)
+        rates = medians(agent, config, args.episodes, args.repeats, args.workers, args.steady)
         for variant, rate in rates.items():
             row[f"{name}_steps_per_s_{variant}"] = round(rate, 1)
         row[f"{name}_speedup"] = round(rates["batched"] / rates["alone"], 2)

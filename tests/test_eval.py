@@ -500,6 +500,37 @@ def test_worker_processes_give_the_episodes_of_one_process(gl, agents) -> None:
         np.testing.assert_array_equal(np.stack(clip), np.stack(worker_frames[episode]))
 
 
+def test_environments_made_once_serve_every_seed(gl, agents) -> None:
+    """``evaluation_envs`` + ``envs=``: one set of environments used for two seeds in turn
+    gives the episodes, returns and frames that fresh environments give each seed."""
+    from twist_models.stages.evaluation import evaluation_envs
+
+    config = EvalConfig(task="cartpole-balance", episodes=3, max_steps=10)
+    agent = load_agent(agents["agent"])
+
+    def run(seed: int, envs=None) -> tuple[list, list[np.ndarray]]:
+        frames: list[np.ndarray] = []
+        results = evaluate(agent, config, seed=seed, batch=2, envs=envs,
+                           record=lambda e, f: frames.append(f))
+        return [(r.episode_seed, r.steps, r.episode_return) for r in results], frames
+
+    fresh = [run(seed) for seed in (0, 1)]
+    assert fresh[0][0] != fresh[1][0]  # the seeds' episodes differ
+    with evaluation_envs(agent, config, batch=2, record=True) as envs:
+        shared = [run(seed, envs) for seed in (0, 1)]
+        for (episodes, frames), (again, again_frames) in zip(fresh, shared, strict=True):
+            assert again == episodes
+            np.testing.assert_array_equal(np.stack(again_frames), np.stack(frames))
+        with pytest.raises(ConfigError, match="are not those this evaluation needs"):
+            evaluate(agent, dataclasses.replace(config, max_steps=5), envs=envs, batch=2)
+        with pytest.raises(ConfigError, match="are not those this evaluation needs"):
+            evaluate(agent, config, envs=envs, batch=3)
+    with evaluation_envs(reference_agent("zero", "cartpole-balance"), config) as blind:
+        assert not blind.render
+        with pytest.raises(ConfigError, match="with views"):
+            evaluate(agent, config, envs=blind)
+
+
 def test_environment_workers_report_a_bad_background_folder_as_ours(tmp_path) -> None:
     from twist_data.errors import BackgroundError
     from twist_data.randomisation import DRConfig

@@ -67,7 +67,9 @@ class LocalEnvs:
         self.renderer = DRRenderer(task, dr, image_size, views=1, supersample=supersample,
                                    states=max(self.places) + 1)
         self.samplers = [self.renderer.sampler(seed) for _ in range(slots)]
-        self.render = render
+        self.slots, self.render = slots, render
+        self.settings = dict(task=task, dr=dr, image_size=image_size, supersample=supersample,
+                             action_repeat=action_repeat, max_steps=max_steps)
 
     def _observe(self, slots: Sequence[int], steps: list[Step]) -> list[Observed]:
         if not self.render or not slots:
@@ -139,6 +141,9 @@ class EnvWorkers:
         if workers < 1:
             raise ConfigError(f"workers must be >= 1, got {workers}")
         self.workers = min(workers, slots)
+        self.slots, self.render = slots, render
+        self.settings = dict(task=task, dr=dr, image_size=image_size, supersample=supersample,
+                             action_repeat=action_repeat, max_steps=max_steps)
         self._conns: list[Connection] = []
         self._processes: list[subprocess.Popen] = []
         for worker in range(self.workers):

@@ -13,6 +13,7 @@ are drawn **once per episode** and held for all its steps, whatever the preset's
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import importlib
@@ -376,11 +377,37 @@ class EpisodeResult:
     ``reward`` [T] after it."""
 
 
+def evaluation_envs(agent: EvalAgent, config: EvalConfig, batch: int = 1, workers: int = 1,
+                    record: bool = False) -> LocalEnvs | EnvWorkers:
+    """The environments :func:`evaluate` steps ``agent``'s episodes in, ``batch`` at a time in
+    this process or in ``workers`` processes; close them (or use ``with``) when done. Made
+    once and passed to several :func:`evaluate` calls (``envs=``), they spare each call their
+    set-up: a simulator per slot, a renderer and, with workers, the processes' start. Each
+    episode is seeded on its own, so one set serves every seed."""
+    if batch < 1 or workers < 1:
+        raise ConfigError(f"batch and workers must be >= 1, got {batch} and {workers}")
+    # An agent without act_batch keeps one episode's state: its episodes run one at a time.
+    width = (min(batch, config.episodes) if batch > 1 and getattr(agent, "batchable", False)
+             else 1)
+    settings = _env_settings(agent, config)
+    return (EnvWorkers(slots=width, workers=workers, render=agent.uses_images or record,
+                       **settings) if workers > 1 and width > 1
+            else LocalEnvs(slots=width, render=agent.uses_images or record, **settings))
+
+
+def _env_settings(agent: EvalAgent, config: EvalConfig) -> dict[str, Any]:
+    """What an evaluation's environments are made with, but their number and views."""
+    return dict(task=config.task, dr=config.dr_config(), image_size=config.image_size,
+                supersample=config.supersample or getattr(agent, "supersample", None) or 1,
+                action_repeat=config.action_repeat, max_steps=config.max_steps)
+
+
 def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
              on_episode: Callable[[EpisodeResult], None] | None = None,
              record: Callable[[int, np.ndarray], None] | None = None,
              skip: frozenset[int] = frozenset(), batch: int = 1,
-             trajectories: bool = False, workers: int = 1) -> list[EpisodeResult]:
+             trajectories: bool = False, workers: int = 1,
+             envs: LocalEnvs | EnvWorkers | None = None) -> list[EpisodeResult]:
     """Run ``config.episodes`` episodes of ``agent``, but those in ``skip``;
     ``record(episode, frame)`` receives the rendered view of every step (for videos) when
     given; with ``trajectories`` each result carries its episode's states, actions and
@@ -399,27 +426,30 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
 
     ``workers`` > 1 simulates and renders a batch's environments in that many worker
     processes (:class:`~twist_data.vector_env.EnvWorkers`), with the same episodes as in
-    this process."""
+    this process. ``envs``: environments from :func:`evaluation_envs` made for the same
+    agent, config, ``batch`` and ``workers``, to use (and leave open) instead of making them."""
     check_compatible(agent, config)
     if batch < 1 or workers < 1:
         raise ConfigError(f"batch and workers must be >= 1, got {batch} and {workers}")
-    render = agent.uses_images or record is not None
-    supersample = config.supersample or getattr(agent, "supersample", None) or 1
     todo = [i for i in range(config.episodes) if i not in skip]
-    # An agent without act_batch keeps one episode's state: its episodes run one at a time.
     batched = batch > 1 and getattr(agent, "batchable", False)
     width = max(1, min(batch, len(todo))) if batched else 1
-    envs = dict(task=config.task, slots=width, dr=config.dr_config(),
-                image_size=config.image_size, supersample=supersample,
-                action_repeat=config.action_repeat, seed=seed, max_steps=config.max_steps,
-                render=render)
-    pool = (EnvWorkers(workers=workers, **envs) if workers > 1 and width > 1
-            else LocalEnvs(**envs))
+    views = agent.uses_images or record is not None
+    owned = envs is None
+    if envs is None:
+        envs = evaluation_envs(agent, config, batch, workers, record is not None)
+    elif envs.slots < width or (views and not envs.render) or (
+            envs.settings != _env_settings(agent, config)):
+        raise ConfigError(f"the environments given ({envs.slots} slots, "
+                          f"{'with' if envs.render else 'without'} views, {envs.settings}) "
+                          f"are not those this evaluation needs ({width} slots"
+                          f"{', with views' if views else ''}, {_env_settings(agent, config)})")
     results = []
-    with pool, single_threaded(), torch.random.fork_rng(devices=range(torch.cuda.device_count())):
+    with (envs if owned else contextlib.nullcontext()), single_threaded(), \
+            torch.random.fork_rng(devices=range(torch.cuda.device_count())):
         for lo in range(0, len(todo), width):
             group = todo[lo:lo + width]
-            for result in _run_group(agent, pool, seed, group, record, batched, trajectories):
+            for result in _run_group(agent, envs, seed, group, record, batched, trajectories):
                 results.append(result)
                 if on_episode is not None:
                     on_episode(result)
@@ -561,31 +591,41 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
         on_progress(count, total)
     for name, agent in loaded.items():
         kind = agent_kind(agent)
-        for seed in seeds:
-            frames: dict[int, list[np.ndarray]] = {}
-            record = functools.partial(_keep_frame, frames, videos) if videos else None
+        # One set of environments serves all of an agent's seeds: set up (and, with workers,
+        # started) once.
+        envs: LocalEnvs | EnvWorkers | None = None
+        with contextlib.ExitStack() as stack:
+            for seed in seeds:
+                skip = frozenset(e for a, s_, e in done if a == name and s_ == seed)
+                if all(i in skip for i in range(config.episodes)):
+                    continue
+                if envs is None:
+                    envs = stack.enter_context(
+                        evaluation_envs(agent, config, batch, workers, record=videos > 0))
+                frames: dict[int, list[np.ndarray]] = {}
+                record = functools.partial(_keep_frame, frames, videos) if videos else None
 
-            def finished(result: EpisodeResult, name: str = name, kind: str = kind) -> None:
-                append_csv(out / "episodes.csv", {
-                    "agent": name, "kind": kind, "seed": result.seed,
-                    "episode": result.episode, "episode_seed": result.episode_seed,
-                    "return": result.episode_return, "steps": result.steps}, EPISODE_COLUMNS)
-                if result.trajectory is not None:
-                    (out / TRAJECTORIES).mkdir(exist_ok=True)
-                    np.savez(out / TRAJECTORIES / trajectory_name(name, result.seed, result.episode),
-                             **result.trajectory)
-                if on_episode is not None:
-                    on_episode(name, result)
-                nonlocal count
-                count += 1
-                if on_progress is not None:
-                    on_progress(count, total)
+                def finished(result: EpisodeResult, name: str = name, kind: str = kind) -> None:
+                    append_csv(out / "episodes.csv", {
+                        "agent": name, "kind": kind, "seed": result.seed,
+                        "episode": result.episode, "episode_seed": result.episode_seed,
+                        "return": result.episode_return, "steps": result.steps}, EPISODE_COLUMNS)
+                    if result.trajectory is not None:
+                        (out / TRAJECTORIES).mkdir(exist_ok=True)
+                        np.savez(out / TRAJECTORIES / trajectory_name(name, result.seed, result.episode),
+                                 **result.trajectory)
+                    if on_episode is not None:
+                        on_episode(name, result)
+                    nonlocal count
+                    count += 1
+                    if on_progress is not None:
+                        on_progress(count, total)
 
-            skip = frozenset(e for a, s_, e in done if a == name and s_ == seed)
-            evaluate(agent, config, seed, finished, record, skip, batch, trajectories, workers)
-            for episode, clip in frames.items():
-                write_video(episode_strip(np.stack(clip)[:, None]),
-                            out / f"{name}-seed{seed}-episode{episode}.mp4")
+                evaluate(agent, config, seed, finished, record, skip, batch, trajectories, workers,
+                         envs)
+                for episode, clip in frames.items():
+                    write_video(episode_strip(np.stack(clip)[:, None]),
+                                out / f"{name}-seed{seed}-episode{episode}.mp4")
     table = pd.read_csv(out / "episodes.csv").drop_duplicates(["agent", "seed", "episode"])
     table = _asked_for(table, list(agents), list(seeds), config.episodes)
     summary = {**summarise(table, config, against), "batch": batch}
