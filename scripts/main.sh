@@ -5,15 +5,17 @@
 # DR, export, and draw a contact sheet; then distil the vision student from D offline and
 # evaluate teacher (on states), student (on images) and the zero-action floor on held-out
 # backgrounds.
-# PRESET=tiny gives a smoke run of seconds; --resume continues an interrupted run.
+# PRESET=tiny gives a smoke run of seconds; SEED=1 (or 2) collects with another seed;
+# EVAL_EPISODES sets the held-out episodes (10). Running it again resumes an interrupted run.
 set -euo pipefail
 . "$(dirname "$0")/bootstrap.sh"
 OUT="${1:-runs/demo}"
 TASK="${TASK:-cartpole-balance}"
 PRESET="${PRESET:-quick}"
+SEED="${SEED:-0}"
 RESUME=()
 if [[ -d "$OUT/dataset/collect" ]]; then RESUME=(--resume); fi
-twist-collect --task "$TASK" --preset "$PRESET" --out "$OUT/dataset" "${RESUME[@]}"
+twist-collect --task "$TASK" --preset "$PRESET" --seed "$SEED" --out "$OUT/dataset" "${RESUME[@]}"
 rm -rf "$OUT/heldout"
 twist-data info "$OUT/dataset"
 twist-data episodes "$OUT/dataset" --csv "$OUT/episodes.csv"
