@@ -154,11 +154,8 @@ class EnvWorkers:
             theirs.close()
             self._conns.append(Connection(ours.detach()))
             own = list(range(worker, slots, self.workers))
-            self._conns[-1].send({"task": task, "slots": len(own), "places": own,
-                                  "dr": dr.to_json(), "image_size": image_size,
-                                  "supersample": supersample,
-                                  "action_repeat": action_repeat, "seed": seed,
-                                  "max_steps": max_steps, "render": render})
+            self._conns[-1].send({**self.settings, "dr": dr.to_json(), "slots": len(own),
+                                  "places": own, "seed": seed, "render": render})
         try:
             self._gather(list(range(self.workers)))
         except EnvWorkerError:

@@ -389,10 +389,9 @@ def evaluation_envs(agent: EvalAgent, config: EvalConfig, batch: int = 1, worker
     # An agent without act_batch keeps one episode's state: its episodes run one at a time.
     width = (min(batch, config.episodes) if batch > 1 and getattr(agent, "batchable", False)
              else 1)
-    settings = _env_settings(agent, config)
-    return (EnvWorkers(slots=width, workers=workers, render=agent.uses_images or record,
-                       **settings) if workers > 1 and width > 1
-            else LocalEnvs(slots=width, render=agent.uses_images or record, **settings))
+    envs = dict(slots=width, render=agent.uses_images or record, **_env_settings(agent, config))
+    return (EnvWorkers(workers=workers, **envs) if workers > 1 and width > 1
+            else LocalEnvs(**envs))
 
 
 def _env_settings(agent: EvalAgent, config: EvalConfig) -> dict[str, Any]:
