@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -42,7 +43,7 @@ from twist_data.randomisation import dr_preset
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.render import DRRenderer
 from twist_data.seeding import evaluation_episode_seed
-from twist_data.tasks import TaskEnv
+from twist_data.tasks import TaskEnv, state_mirror
 from twist_models.agent import Agent
 from twist_models.networks import ImageEncoder
 from twist_models.readout import StateReadOut, typical
@@ -90,20 +91,41 @@ def images_in(image: torch.Tensor) -> torch.Tensor:
     return x.contiguous(memory_format=torch.channels_last)
 
 
+def angle_flattening(states: np.ndarray, steps: np.ndarray, power: float,
+                     bins: int = 64) -> np.ndarray:
+    """Draw probabilities over ``steps`` proportional to 1 / (the density of the pole's angle
+    among them) ** ``power``: 0 draws D's mix, 1 every angle bin as often."""
+    angle = np.arctan2(states[steps, 2], states[steps, 1])
+    edges = np.linspace(angle.min(), angle.max(), bins + 1)
+    which = np.clip(np.digitize(angle, edges) - 1, 0, bins - 1)
+    weight = np.bincount(which, minlength=bins)[which].astype(np.float64) ** -power
+    return weight / weight.sum()
+
+
 def train(model: nn.Module, readout: StateReadOut, data: MatchingDataset, steps: np.ndarray,
-          updates: int, seed: int) -> float:
+          updates: int, seed: int, draw: np.ndarray | None = None,
+          mirror: torch.Tensor | None = None) -> float:
+    """``updates`` Adam steps of the read-out's loss on 64 of D's ``steps`` each, drawn
+    uniformly or by ``draw`` [len(steps)]; with ``mirror`` (the state's signs in the mirrored
+    view) each frame is mirrored with probability 1/2, as ``readout_mirror=augment``."""
     rng = np.random.default_rng(seed)
     states = torch.as_tensor(data.column("state"), dtype=torch.float32)
     optimiser = torch.optim.Adam(model.parameters(), lr=3e-4, eps=1e-5)
     buffer = np.empty((64, *data.spec.image_shape), np.uint8)
     start = time.perf_counter()
     for update in range(updates):
-        rows = steps[rng.integers(0, steps.size, 64)]
+        rows = (steps[rng.integers(0, steps.size, 64)] if draw is None
+                else rng.choice(steps, 64, p=draw))
         data.read_frames(rows, rng.integers(0, data.spec.views, 64), buffer)
+        image, state = torch.from_numpy(buffer).clone(), states[rows]
+        if mirror is not None:
+            flip = torch.from_numpy(rng.random(64) < 0.5)
+            image[flip] = image[flip].flip(-2)
+            state = torch.where(flip[:, None], state * mirror, state)
         with torch.autocast("cpu", dtype=torch.bfloat16):
-            out = model(images_in(torch.from_numpy(buffer)))
+            out = model(images_in(image))
         read = out.float() * readout.scale + readout.mean
-        loss = F.huber_loss(readout.errors(read, states[rows]), torch.zeros_like(read))
+        loss = F.huber_loss(readout.errors(read, state), torch.zeros_like(read))
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(model.parameters(), 100.0)
@@ -136,8 +158,10 @@ def sweep(read: Callable[[torch.Tensor], torch.Tensor], scenes: int) -> dict:
                 frames.append(renderer.render(physics, params)[0])
             with torch.no_grad():
                 pos = read(torch.as_tensor(np.stack(frames))).numpy()
-            error = np.degrees(np.arctan2(pos[:, 2], pos[:, 1]) - truth[:, 1])
-            rows.append({"scene": i, "bias": float(error.mean()),
+            angle = np.degrees(np.arctan2(pos[:, 2], pos[:, 1]))
+            error = angle - np.degrees(truth[:, 1])
+            slope = np.polyfit(np.degrees(truth[:, 1]), angle, 1)[0]
+            rows.append({"scene": i, "bias": float(error.mean()), "slope": float(slope),
                          "rms": float(np.sqrt((error ** 2).mean())),
                          "near_rms": float(np.sqrt((error[near] ** 2).mean())),
                          "x_rms": float(np.sqrt(((pos[:, 0] - truth[:, 0]) ** 2).mean()))})
@@ -147,7 +171,10 @@ def sweep(read: Callable[[torch.Tensor], torch.Tensor], scenes: int) -> dict:
             "median_near_rms_deg": round(float(np.median([r["near_rms"] for r in rows])), 3),
             "mean_rms_deg": round(float(np.mean([r["rms"] for r in rows])), 3),
             "mean_x_rms": round(float(np.mean([r["x_rms"] for r in rows])), 4),
-            "per_scene_bias": [round(r["bias"], 2) for r in rows]}
+            "median_slope": round(float(np.median([r["slope"] for r in rows])), 3),
+            "scenes_slope_under_0.8": int(sum(r["slope"] < 0.8 for r in rows)),
+            "per_scene_bias": [round(r["bias"], 2) for r in rows],
+            "per_scene_slope": [round(r["slope"], 2) for r in rows]}
 
 
 def main() -> None:
@@ -158,8 +185,14 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=30)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--agent", type=Path, help="sweep this agent bundle instead")
+    parser.add_argument("--init", type=Path, help="fine-tune this agent's CNN and linear head "
+                        "(with its mirror augmentation and reading) instead of training anew")
+    parser.add_argument("--save-agent", type=Path, help="with --init: write the agent with the "
+                        "fine-tuned CNN and head here, for twist-eval")
+    parser.add_argument("--flatten", type=float, default=0.0,
+                        help="draw frames by 1 / the pole angle's density to this power")
     args = parser.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
     if args.agent is not None:
         student = Agent.load(args.agent).student
         readings = {"image": lambda im: student.readout.read(student.encoder(im))}
@@ -169,12 +202,13 @@ def main() -> None:
             print(json.dumps({"head": "agent", "agent": str(args.agent), "reading": reading,
                               **sweep(read, args.scenes)}), flush=True)
         return
-    trained = Agent.load(args.run / "student" / "agent.pt").student
+    trained = Agent.load(args.init or args.run / "student" / "agent.pt").student
     data = open_dataset(args.run / "dataset")
     states = data.column("state")
     keep = typical(states, trained.readout.config, trained.readout.mean.numpy(),
                    trained.readout.scale.numpy())
     steps = np.flatnonzero(keep)
+    draw = angle_flattening(states, steps, args.flatten) if args.flatten else None
     for name in args.heads.split(","):
         torch.manual_seed(args.seed)
         encoder = ImageEncoder(trained.config.cnn)
@@ -183,14 +217,31 @@ def main() -> None:
         outputs = len(readout.config.read)
         model = (LinearHead(encoder, outputs) if name == "linear"
                  else KeypointHead(encoder, int(name.removeprefix("keypoints")), 32, outputs))
-        seconds = train(model, readout, data, steps, args.updates, args.seed)
+        mirror = None
+        if args.init is not None:
+            encoder.load_state_dict(trained.encoder.state_dict())
+            model.head.load_state_dict(trained.readout.head.state_dict())
+            if trained.readout.config.mirror:
+                mirror = torch.tensor(state_mirror(data.spec.task), dtype=torch.float32)
+        seconds = train(model, readout, data, steps, args.updates, args.seed, draw, mirror)
         model.eval()
+        if args.save_agent is not None and args.init is not None:
+            agent = Agent.load(args.init)
+            agent.student.encoder.load_state_dict(encoder.state_dict())
+            agent.student.readout.head.load_state_dict(model.head.state_dict())
+            agent.save(args.save_agent)
 
         def read(image: torch.Tensor, model: nn.Module = model,
-                 readout: StateReadOut = readout) -> torch.Tensor:
-            return model(images_in(image)).float() * readout.scale + readout.mean
+                 readout: StateReadOut = readout, mirror: torch.Tensor | None = mirror
+                 ) -> torch.Tensor:
+            out = model(images_in(image)).float() * readout.scale + readout.mean
+            if mirror is None:
+                return out
+            flipped = model(images_in(image.flip(-2))).float() * readout.scale + readout.mean
+            return (out + readout.mirror * flipped) / 2
 
-        print(json.dumps({"head": name, "updates": args.updates, "train_s": round(seconds, 1),
+        print(json.dumps({"head": name, "updates": args.updates, "flatten": args.flatten,
+                          "train_s": round(seconds, 1),
                           **sweep(read, args.scenes)}), flush=True)
 
 
