@@ -7,6 +7,7 @@ through config, run folder and agent bundle."""
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,7 @@ from twist_models.readout import (
     robust_standardisation,
     training_frames,
 )
+from twist_models.stages import distill as distill_stage
 from twist_models.stages.distill import DistilError, distil, load_student, stored_config
 from twist_models.student import Student, copy_teacher_filter
 from twist_models.teacher import Teacher, save_teacher
@@ -444,3 +446,31 @@ def test_auto_mirroring_follows_the_tasks_declaration(inputs, tmp_path: Path,
     monkeypatch.setattr(stage, "state_mirror", lambda task: ())
     undeclared = distil(dataset, tmp_path / "undeclared", config, teacher=teacher_path)
     assert Agent.load(undeclared.agent).config.student.readout.mirror == ()
+
+
+def test_a_resume_accepts_gains_measured_again_to_the_last_digits_only(
+        inputs, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The gains are measured on D again at every start; with another BLAS thread count their
+    # last digits change. A resume must accept that and keep the first measurement, and still
+    # refuse gains that differ.
+    dataset, teacher_path, _, _ = inputs
+    config = distil_preset("tiny", "readout")
+    first = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
+    gains = Agent.load(first.agent).config.student.readout.gains
+    measure = distill_stage._pair_readout
+
+    def measured_again(factor: float):
+        def pair(*args, **kwargs) -> ReadOutConfig:
+            readout = measure(*args, **kwargs)
+            return dataclasses.replace(readout, gains=tuple(g * factor for g in readout.gains))
+        return pair
+
+    longer = dataclasses.replace(config, frame_steps=config.frame_steps + 2)
+    monkeypatch.setattr(distill_stage, "_pair_readout", measured_again(1 + 1e-13))
+    summary = distil(dataset, tmp_path / "run", longer, teacher=teacher_path, resume=True)
+    assert Agent.load(summary.agent).config.student.readout.gains == gains
+    assert json.loads((tmp_path / "run" / "config.json").read_text()
+                      )["student"]["readout"]["gains"] == list(gains)
+    monkeypatch.setattr(distill_stage, "_pair_readout", measured_again(1 + 1e-3))
+    with pytest.raises(DistilError, match="the student's sizes differ"):
+        distil(dataset, tmp_path / "run", longer, teacher=teacher_path, resume=True)
