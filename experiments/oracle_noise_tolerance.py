@@ -16,6 +16,11 @@ near upright, noise on the sine (component 2) is noise on the angle in radians.
 reading them exactly, its own noise switched off: does it act worse because it learned
 less, or because it sees less?
 
+``--lean-gain K`` adds the teacher reading the pole's angle as K times what it is (cartpole:
+the angle's cos and sin, and the angular velocity with it, as a student's reading that leans
+K times less than the pole hands them on): how much too little lean the teacher's actor
+tolerates.
+
 ``--read mean`` (or ``mode``) adds the noise-free teacher taking z from its posterior's class
 probabilities (or most likely classes) instead of a sample.
 
@@ -57,6 +62,27 @@ class NoisyStateAgent:
         return self.inner.act(dataclasses.replace(step, state=state), image)
 
 
+class LeaningStateAgent:
+    """``inner`` acting on a cartpole state whose pole angle (cos, sin) and angular velocity
+    read ``gain`` times what they are."""
+
+    uses_images = False
+
+    def __init__(self, inner: StateAgent, gain: float) -> None:
+        self.inner, self.gain = inner, gain
+        self.task, self.action_repeat = inner.task, inner.action_repeat
+        self.action_dim = inner.action_dim
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
+        state = step.state.copy()
+        angle = self.gain * np.arctan2(state[2], state[1])
+        state[1], state[2], state[4] = np.cos(angle), np.sin(angle), self.gain * state[4]
+        return self.inner.act(dataclasses.replace(step, state=state), image)
+
+
 def parse_noise(text: str) -> tuple[int, float]:
     index, sigma = text.split(":")
     return int(index), float(sigma)
@@ -65,8 +91,11 @@ def parse_noise(text: str) -> tuple[int, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("teacher", help="a teacher checkpoint (teacher.pt of twist-collect)")
-    parser.add_argument("--noise", type=parse_noise, action="append", required=True,
+    parser.add_argument("--noise", type=parse_noise, action="append", default=[],
                         metavar="I:SIGMA", help="noise std SIGMA on state component I")
+    parser.add_argument("--lean-gain", type=float, action="append", default=[], metavar="K",
+                        help="the pole's angle and angular velocity read K times what they "
+                             "are (cartpole)")
     parser.add_argument("--task", help="for teacher checkpoints that do not record it")
     parser.add_argument("--action-repeat", type=int, help="likewise")
     parser.add_argument("--read", choices=("mode", "mean"), action="append", default=[],
@@ -102,6 +131,8 @@ def main() -> None:
     for index, sigma in args.noise:
         returns[f"{index}:{sigma:g}"] = mean_return(
             NoisyStateAgent(teacher, index, sigma, args.seed))
+    for gain in args.lean_gain:
+        returns[f"lean-gain:{gain:g}"] = mean_return(LeaningStateAgent(teacher, gain))
     print(json.dumps({"teacher": args.teacher, "task": teacher.task, "episodes": args.episodes,
                       "mean_return": returns}))
 

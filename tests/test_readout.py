@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -149,6 +150,81 @@ def test_an_angle_difference_is_wrapped_whatever_the_pairs_length() -> None:
     # A pair off the circle turns by its angle alone, whatever its length.
     longer = readout.state(torch.cat([after[:1], 3 * after[1:]]), before)
     assert float(longer[4]) == pytest.approx(2 * expected_turn, rel=1e-5)
+
+
+def _handed(readout, angles: list[float], median: float = 0.0) -> torch.Tensor:
+    """What ``readout.positions`` hands the filter when its head reads the cart at 0 and the
+    pole at each of ``angles`` (radians), D's median angle being ``median``: the head's
+    weights zeroed, so that its bias alone sets the reading."""
+    readout.set_standardisation(np.array([0.0, np.cos(median), np.sin(median)]), np.ones(3))
+    readout.head.weight.data.zero_()
+    handed = []
+    with torch.no_grad():
+        for angle in angles:
+            read = torch.tensor([0.0, np.cos(angle), np.sin(angle)], dtype=torch.float32)
+            readout.head.bias.copy_(read - readout.mean)
+            handed.append(readout.positions(torch.zeros(1, readout.head.in_features))[0])
+    return torch.stack(handed)
+
+
+def _angle(positions: torch.Tensor) -> torch.Tensor:
+    return torch.atan2(positions[..., 2], positions[..., 1])
+
+
+def test_a_leaned_readout_hands_on_the_angle_further_from_ds_median(inputs) -> None:
+    config = dataclasses.replace(_paired(inputs[3]), lean=1.25)
+    readout = Student(StudentConfig(readout=config)).readout
+    angles = [0.0, 0.1, -0.2, np.pi / 2, 3.0, -3.1]
+    handed = _handed(readout, angles)
+    # By hand, about D's median angle (0 here): d + 0.25 sin d; the cart's reading untouched.
+    expected = torch.tensor([a + 0.25 * np.sin(a) for a in angles], dtype=torch.float32)
+    torch.testing.assert_close(_angle(handed), expected, atol=1e-5, rtol=0)
+    assert torch.equal(handed[:, 0], torch.zeros(len(angles)))
+    # Near upright that is 1.25 times the angle; monotone round to a fallen pole, which stays.
+    assert float(_angle(handed[1])) == pytest.approx(0.125, rel=2e-3)
+    fine = np.linspace(-np.pi + 1e-3, np.pi - 1e-3, 721).tolist()
+    assert (torch.diff(_angle(_handed(readout, fine))) > 0).all()
+    # About a median of 0.3 rad (no mirror turns this angle over).
+    assert float(_angle(_handed(readout, [0.4], median=0.3)[0])) == pytest.approx(
+        0.4 + 0.25 * np.sin(0.1), abs=1e-5)
+    # The rebuilt angular velocity is the gain times the turn of the leaned readings.
+    before, after = _handed(readout, [0.1, 0.2])
+    turn = (0.2 + 0.25 * np.sin(0.2)) - (0.1 + 0.25 * np.sin(0.1))
+    assert float(readout.state(after, before)[4]) == pytest.approx(config.gains[1] * turn,
+                                                                   rel=1e-4)
+
+
+def test_a_leaned_mirror_averaged_reading_stays_mirror_symmetric(inputs) -> None:
+    dataset, _, teacher, rows = inputs
+    torch.manual_seed(2)
+    config = dataclasses.replace(_mirrored(rows), lean=1.5)
+    student = Student(student_preset("tiny", teacher.config, readout=config)).eval()
+    # D's median angle off 0 must not matter: the mirror turns the angle over about 0.
+    student.readout.set_standardisation(np.array([0.0, np.cos(0.2), np.sin(0.2)]),
+                                        np.array([1.0, 0.1, 0.1]))
+    data = open_dataset(dataset)
+    images = np.empty((4, *data.spec.image_shape), np.uint8)
+    data.read_frames(np.arange(4), np.zeros(4, int), images)
+    image = torch.as_tensor(images)
+    with torch.no_grad():
+        _, read = student.step_embed(image, None)
+        _, read_of_mirror = student.step_embed(image.flip(-2), None)
+    torch.testing.assert_close(read_of_mirror, torch.tensor(config.mirror) * read)
+
+
+def test_a_lean_outside_its_range_or_without_a_readout_is_refused() -> None:
+    with pytest.raises(ConfigError, match=re.escape(
+            "lean must lie in (0, 2) for the reading's map to stay monotone, got 2.0")):
+        ReadOutConfig(state_dim=1, lean=2.0)
+    with pytest.raises(ConfigError, match=re.escape("readout_lean must lie in (0, 2), got 0.0")):
+        distil_preset("tiny", "readout", readout_lean=0.0)
+    with pytest.raises(ConfigError, match=re.escape(
+            "readout_lean=1.25 leans a read-out's angles; only a read-out student")):
+        distil_preset("tiny", "dense", readout_lean=1.25)
+    # A bundle written before the lean existed reads its angles as read.
+    stored = json.loads(json.dumps(to_json(StudentConfig(readout=ReadOutConfig(state_dim=1)))))
+    del stored["readout"]["lean"]
+    assert from_json(StudentConfig, stored).readout.lean == 1.0
 
 
 def test_the_step_path_acts_on_what_the_window_path_filters(inputs) -> None:

@@ -194,7 +194,8 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
     for name, changed in (("twist-readout-eq34", {"steps": student_steps}),
                           ("twist-readout-no-stage", {"frame_steps": 0, "steps": student_steps}),
                           ("twist-readout-no-norm", {"encoder_norm": "none"}),
-                          ("twist-readout-no-mirror", {"readout_mirror": "none"})):
+                          ("twist-readout-no-mirror", {"readout_mirror": "none"}),
+                          ("twist-readout-no-lean", {"readout_lean": 1.0})):
         ablated = stored(name)["distil"]
         assert ablated["recipe"] == "readout"
         assert ablated == {**readout, **changed}, name

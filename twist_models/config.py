@@ -321,6 +321,10 @@ class ReadOutConfig:
     """Per component of ``read``, the sign it takes when the view is mirrored left to right
     (the task's ``TaskSpec.mirror``): given, each image is read as the mean of its own reading
     and its mirror image's, mirrored back; empty, as it is."""
+    lean: float = 1.0
+    """How much further from its median over D each (cos, sin) angle is handed to the filter
+    than it is read, near that median (1: as read; the map is monotone and leaves the
+    opposite angle where it is, so it needs 0 < lean < 2; :meth:`StateReadOut.positions`)."""
 
     def __post_init__(self) -> None:
         require_positive(self, "state_dim")
@@ -328,6 +332,9 @@ class ReadOutConfig:
                             or any(abs(v) != 1 for v in self.mirror)):
             raise ConfigError(f"mirror needs a sign (+1 or -1) per read component "
                               f"({len(self.read)}), got {list(self.mirror)}")
+        if not 0 < self.lean < 2:
+            raise ConfigError(f"lean must lie in (0, 2) for the reading's map to stay "
+                              f"monotone, got {self.lean}")
         derived = [v[0] for v in self.velocities]
         every = [*self.read, *derived]
         if sorted(every) != list(range(self.state_dim)):

@@ -170,7 +170,8 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
                                     config.frames, config.encoder_norm,
                                     state_head=config.state_weight > 0,
                                     readout=_pair_readout(data, rows, teacher_model,
-                                                          _mirror_mode(config, data))
+                                                          _mirror_mode(config, data),
+                                                          config.readout_lean)
                                     if rows is not None else None)
     student_config = _check_output(out, config, student_config, resume)
     rank, world = _rank_and_world()
@@ -211,9 +212,10 @@ def _training_rows(data: MatchingDataset, config: DistilConfig) -> FrameRows:
 
 
 def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher,
-                  mirror: str = "none") -> ReadOutConfig:
-    """What a read-out student reads and derives, measured on D's training steps, and the
-    mirror signs of what it reads where ``mirror`` (``readout_mirror``) asks for them."""
+                  mirror: str = "none", lean: float = 1.0) -> ReadOutConfig:
+    """What a read-out student reads and derives, measured on D's training steps, the
+    mirror signs of what it reads where ``mirror`` (``readout_mirror``) asks for them, and
+    how far it leans the angles it reads (``readout_lean``)."""
     wm = teacher.config.world_model
     if wm.state_hidden:
         raise DistilError(f"the readout recipe hands the teacher the whole state it read; this "
@@ -221,6 +223,7 @@ def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher,
                           "(state_hidden)")
     readout = pair_velocities(rows.state.numpy(), rows.steps == rows.episode_start,
                               data.spec.state_layout, wm.state_mlp, data.spec.task)
+    readout = dataclasses.replace(readout, lean=lean)
     if mirror == "none":
         return readout
     signs = _mirror(data)

@@ -79,6 +79,7 @@ AGENTS: dict[str, str] = {
     "twist-readout-no-stage": "Eq. 3/4 alone through the teacher's filter (no read-out stage)",
     "twist-readout-no-norm": "read-out recipe w/o the layer-normalised CNN",
     "twist-readout-no-mirror": "read-out recipe w/o the mirror image",
+    "twist-readout-no-lean": "read-out recipe handing on the angle as read (lean 1)",
     "twist-scratch": "TWIST, student RSSM from scratch (as the paper)",
     "twist-no-imagined": "TWIST w/o imagined distillation",
     "twist-no-noise": "TWIST w/o action noise",
@@ -112,6 +113,7 @@ STUDENT_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "twist-readout-no-stage": ("readout", {"frame_steps": 0}),
     "twist-readout-no-norm": ("readout", {"encoder_norm": "none", "steps": 0}),
     "twist-readout-no-mirror": ("readout", {"readout_mirror": "none", "steps": 0}),
+    "twist-readout-no-lean": ("readout", {"readout_lean": 1.0, "steps": 0}),
 }
 #: Table I of the paper (held-out backgrounds, 500K frames, paper-scale models on GPU): the
 #: values as the paper reports them. Blank cells are values not transcribed.

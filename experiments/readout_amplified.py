@@ -1,0 +1,61 @@
+"""Does a read-out student hold its lost scenes when its reading of the pole's lean is
+amplified?
+
+Along the student's own episodes in the scenes it loses, its reading leans less than the pole
+(slopes 0.22-0.80 against 0.82-0.92 where it holds; ``bias_identification.py``), as a
+squared-error read-out does where a frame shows the lean faintly: it shrinks towards the
+upright D is full of. The teacher's actor, acting on states, tolerates a lean read too large
+far better than one read too small (``oracle_noise_tolerance.py --lean-gain``). If the lost
+scenes are lost for the shrinkage, reading every angle ``gain`` times larger (about the
+angle's median over D, upright on cartpole; the angular velocity, a difference of readings,
+grows with it; the library's map, ``ReadOutConfig.lean``, which leaves a fallen pole where it
+is) should hold them, at the price of amplifying the held scenes' read noise too;
+if they are lost for noise or an offset, the gain should not help or should hurt.
+
+Each agent is evaluated at every gain on the same held-out episodes, one table::
+
+    python experiments/readout_amplified.py runs/mirror/student/agent.pt --gain 1 \
+        --gain 1.5 --episodes 30 --out runs/amplified/eval
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from twist_models.agent import Agent
+from twist_models.stages.evaluation import EvalConfig, ImageAgent, run_evaluation
+
+
+def amplified(agent: Agent, lean: float) -> Agent:
+    """``agent`` handing its filter each angle it reads ``lean`` times further from D's median
+    angle (``ReadOutConfig.lean``, whatever its bundle says)."""
+    readout = agent.student.readout
+    readout.config = dataclasses.replace(readout.config, lean=lean)
+    return agent
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("agent", type=Path)
+    parser.add_argument("--gain", type=float, action="append", required=True)
+    parser.add_argument("--episodes", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--batch", type=int, default=10)
+    parser.add_argument("--dr", default="heldout")
+    parser.add_argument("--backgrounds")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+
+    agents = {f"gain{g:g}": ImageAgent(amplified(Agent.load(args.agent), g)) for g in args.gain}
+    info = Agent.load(args.agent).info
+    config = EvalConfig(task=info.get("task"), dr=args.dr, episodes=args.episodes,
+                        backgrounds=args.backgrounds, action_repeat=info.get("action_repeat"))
+    summary = run_evaluation(agents, config, seeds=[args.seed], out=args.out, batch=args.batch)
+    for name, row in summary["agents"].items():
+        print(f"{name}: {row['mean']:.1f}")
+
+
+if __name__ == "__main__":
+    main()
