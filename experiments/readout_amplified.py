@@ -15,7 +15,7 @@ if they are lost for noise or an offset, the gain should not help or should hurt
 Each agent is evaluated at every gain on the same held-out episodes, one table::
 
     python experiments/readout_amplified.py runs/mirror/student/agent.pt --gain 1 \
-        --gain 1.5 --episodes 30 --out runs/amplified/eval
+        --gain 1.5 --episodes 30 --out runs/amplified/eval [--save runs/amplified/bundles]
 """
 
 from __future__ import annotations
@@ -30,9 +30,13 @@ from twist_models.stages.evaluation import EvalConfig, ImageAgent, run_evaluatio
 
 def amplified(agent: Agent, lean: float) -> Agent:
     """``agent`` handing its filter each angle it reads ``lean`` times further from D's median
-    angle (``ReadOutConfig.lean``, whatever its bundle says)."""
-    readout = agent.student.readout
-    readout.config = dataclasses.replace(readout.config, lean=lean)
+    angle (``ReadOutConfig.lean``, whatever its bundle says), its config saying so."""
+    student = dataclasses.replace(agent.config.student, readout=dataclasses.replace(
+        agent.config.student.readout, lean=lean))
+    agent.config = dataclasses.replace(agent.config, student=student)
+    agent.student.config = student
+    agent.student.readout.config = student.readout
+    agent.info["lean_set_by"] = "experiments/readout_amplified.py"
     return agent
 
 
@@ -46,9 +50,16 @@ def main() -> None:
     parser.add_argument("--dr", default="heldout")
     parser.add_argument("--backgrounds")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--save", type=Path,
+                        help="also write each lean's bundle here (agent-lean<K>.pt) for "
+                             "twist-eval")
     args = parser.parse_args()
 
     agents = {f"gain{g:g}": ImageAgent(amplified(Agent.load(args.agent), g)) for g in args.gain}
+    if args.save is not None:
+        args.save.mkdir(parents=True, exist_ok=True)
+        for name, agent in agents.items():
+            agent.agent.save(args.save / f"agent-lean{name.removeprefix('gain')}.pt")
     info = Agent.load(args.agent).info
     config = EvalConfig(task=info.get("task"), dr=args.dr, episodes=args.episodes,
                         backgrounds=args.backgrounds, action_repeat=info.get("action_repeat"))
