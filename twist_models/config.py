@@ -322,9 +322,10 @@ class ReadOutConfig:
     (the task's ``TaskSpec.mirror``): given, each image is read as the mean of its own reading
     and its mirror image's, mirrored back; empty, as it is."""
     lean: float = 1.0
-    """How much further from its median over D each (cos, sin) angle is handed to the filter
-    than it is read, near that median (1: as read; the map is monotone and leaves the
-    opposite angle where it is, so it needs 0 < lean < 2; :meth:`StateReadOut.positions`)."""
+    """How much further from its centre each (cos, sin) angle is handed to the filter than it
+    is read, near that centre: D's median angle, or 0 for an angle the mirror turns over (1:
+    as read; the map is monotone and leaves the opposite angle where it is, so it needs
+    0 < lean < 2; :meth:`StateReadOut.positions`)."""
 
     def __post_init__(self) -> None:
         require_positive(self, "state_dim")

@@ -147,10 +147,11 @@ class DistilConfig:
     its state mirrored with it (not in the paper; docs/experiments.md); ``auto``:
     :data:`AUTO_MIRROR` where the task declares its mirror, ``none`` elsewhere."""
     readout_lean: float = 1.0
-    """How much further from upright a read-out student hands each angle it reads to the
-    teacher's filter than it reads it (``ReadOutConfig.lean``; 1: as read). The ``readout``
-    recipe's 1.25 was chosen on held-out scenes of another evaluation seed than the
-    reported one, among 1, 1.15, 1.25, 1.35 and 1.5 (not in the paper; docs/experiments.md)."""
+    """How much further from its centre (upright on cartpole) a read-out student hands each
+    angle it reads to the teacher's filter than it reads it (``ReadOutConfig.lean``; 1: as
+    read); any ``steps`` of Eq. 3/4 train through it. The ``readout`` recipe's 1.25 was
+    chosen on held-out scenes of another evaluation seed than the reported one, among 1,
+    1.15, 1.25, 1.35 and 1.5 (not in the paper; docs/experiments.md)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
