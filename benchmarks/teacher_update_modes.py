@@ -7,9 +7,11 @@ each update: its teacher config (overshooting, imagination starts, critic head) 
 (``batch_size`` x ``batch_length``) on the task's state and action sizes. Variants, each a
 copy of the same initial weights:
 
-* ``eager``: float32, no compilation (the reference, ``--set compile=off``);
+* ``eager``: float32, no compilation (the reference, ``--set compile=off
+  --set imagination_precision=float32``);
 * ``bf16``: imagination and the actor-critic in bfloat16 autocast
-  (``--set teacher.actor_critic.precision=bfloat16``);
+  (``--set imagination_precision=bfloat16``; the ``quick`` preset's ``auto`` where the CPU
+  computes bfloat16 natively);
 * ``compiled``: the whole update as the collector compiles it (``--set compile=on``,
   ``Dreamer.compile_update``);
 * ``compiled_bf16``: both.
@@ -86,6 +88,10 @@ def main() -> None:
     collect = collect_preset(args.preset, task=args.task)
     env = TaskEnv(args.task, collect.action_repeat)
     config = collect.teacher_config(env.state_dim, env.action_dim)
+    # The reference is float32 whatever the preset runs (quick: ``auto``, bfloat16 on CPUs
+    # that compute it natively); the bf16 variants set it themselves.
+    config = dataclasses.replace(config, actor_critic=dataclasses.replace(
+        config.actor_critic, precision="float32"))
     batch = collector_batch(collect.batch_size, collect.batch_length, env.state_dim,
                             env.action_dim, device)
     torch.manual_seed(0)

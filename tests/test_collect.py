@@ -231,7 +231,8 @@ def test_behaviour_overrides_reach_the_teacher_config() -> None:
     config = collect_preset("tiny", explore_noise=0.3, actor_entropy=1e-3, imag_starts=7,
                             horizon=50, critic_head="twohot", actor_lr=2e-5, critic_lr=3e-4,
                             slow_target_every=1, discount=0.96,
-                            state_noise=0.05).teacher_config(5, 1)
+                            state_noise=0.05, imagination_precision="bfloat16"
+                            ).teacher_config(5, 1)
     behaviour = config.actor_critic
     assert (config.explore_noise, behaviour.entropy, behaviour.imag_starts, behaviour.horizon) \
         == (0.3, 1e-3, 7, 50)
@@ -239,6 +240,9 @@ def test_behaviour_overrides_reach_the_teacher_config() -> None:
             behaviour.slow_target_every, behaviour.discount) == ("twohot", 2e-5, 3e-4, 1, 0.96)
     assert Teacher(config).actor_critic.critic[-1].out_features == 255
     assert (default.explore_noise, default.actor_critic.entropy) == (0.0, 1e-4)
+    assert (behaviour.precision, default.actor_critic.precision) == ("bfloat16", "float32")
+    with pytest.raises(ConfigError, match=r"imagination_precision .*'half'"):
+        collect_preset("tiny", imagination_precision="half")
     assert config.world_model == dataclasses.replace(default.world_model, state_noise=0.05)
     assert default.world_model.state_noise == 0.0
     # DreamerV2's train ratio: nothing before prefill, then pretrain + 1 per train_every steps.

@@ -57,6 +57,7 @@ from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Dynamics, Task
 from twist_data.writer import ShardWriter, shard_path
 from twist_models.agent import Agent
 from twist_models.config import (
+    PRECISIONS,
     PRESETS,
     TeacherConfig,
     from_json,
@@ -202,6 +203,10 @@ class CollectConfig:
     """Override of the actor-critic's per-agent-step discount; None keeps the preset's (0.99,
     DreamerV2's at action repeat 2: keep gamma ** (1 / action_repeat) fixed to keep the
     horizon in seconds)."""
+    imagination_precision: str | None = None
+    """Override of the arithmetic of the teacher's imagined rollouts and actor-critic
+    (``float32``, ``bfloat16`` or ``auto``: ``ActorCriticConfig.precision``); None keeps the
+    preset's (float32)."""
     teacher: TeacherConfig | None = None
     """The teacher's whole config, its sizes included; None: the ``model`` preset's for the
     task. ``--set teacher.<field>=...`` (e.g. ``teacher.world_model.rssm.deter=256``) starts
@@ -214,6 +219,8 @@ class CollectConfig:
     def __post_init__(self) -> None:
         task_spec(self.task)  # raises UnknownTaskError naming the valid tasks
         require_choice(self, "compile", COMPILE_SETTINGS)
+        if self.imagination_precision is not None:
+            require_choice(self, "imagination_precision", PRECISIONS)
         if self.model not in PRESETS:
             raise ConfigError(f"unknown model preset {self.model!r}; valid: {', '.join(PRESETS)}")
         if self.dr not in DR_PRESETS:
@@ -263,7 +270,8 @@ class CollectConfig:
                            entropy=self.actor_entropy, actor_grad=self.actor_grad,
                            return_norm=self.return_norm, critic_head=self.critic_head,
                            actor_lr=self.actor_lr, critic_lr=self.critic_lr,
-                           slow_target_every=self.slow_target_every, discount=self.discount)
+                           slow_target_every=self.slow_target_every, discount=self.discount,
+                           precision=self.imagination_precision)
         model = _given(model_lr=self.model_lr, overshoot=self.overshoot,
                        state_noise=self.state_noise)
         return dataclasses.replace(
@@ -305,7 +313,10 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # 2,000 world-model updates on 10K random frames come before behaviour learning; a 12x
     # faster actor (1e-3) and a DreamerV3 critic (two-hot, normalised returns) fit the few
     # thousand behaviour updates that the main job's budget allows; 15-step open-loop
-    # overshooting trains what imagination uses.
+    # overshooting trains what imagination uses. Imagination runs in bfloat16 where the CPU
+    # computes it natively: its heads over 256 x 16 imagined states are most of an update's
+    # matrix products (1.30x per update on an AMD EPYC, 1.05x on an Intel Xeon:
+    # benchmarks/teacher_update_modes.py).
     # The teacher learns for 100K frames (at 28K it had not learned to balance; at 60K
     # three seeds' best teachers scored 826-978 held out, at 100K 982-995: docs/experiments.md,
     # "Does the teacher balance when it learns longer?"), then the
@@ -319,7 +330,8 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
                            pretrain_updates=2_000, behaviour_from=2_000, train_every=4,
                            batch_size=32, imag_starts=256, model_lr=1e-3, overshoot=15,
                            return_norm=True, critic_head="twohot", actor_lr=1e-3,
-                           critic_lr=3e-4, slow_target_every=50, discount=0.98),
+                           critic_lr=3e-4, slow_target_every=50, discount=0.98,
+                           imagination_precision="auto"),
     # Tests and smoke runs: seconds, learns nothing.
     "tiny": CollectConfig(model="tiny", frames=400, max_steps=50, eval_every=200,
                           eval_episodes=1, snapshot_every=200, prefill_frames=100,
