@@ -43,13 +43,7 @@ if [[ "$DEVICE" == cuda* ]]; then DISTIL_COMPILE=(--set compile=true); fi
 EVAL=(--episodes "${EVAL_EPISODES:-10}")
 if [[ "$PRESET" == tiny ]]; then EVAL=(--episodes 2 --max-steps 20); fi
 
-declare -A SPENT
-stage() {  # stage NAME COMMAND...: run it and record its seconds
-  local name=$1 start=$SECONDS
-  shift
-  "$@"
-  SPENT[$name]=$((SECONDS - start))
-}
+. scripts/stages.sh  # both branches above leave the working folder at the repository's root
 
 RESUME=()
 if [[ -d "$OUT/dataset/collect" ]]; then RESUME=(--resume); fi
@@ -65,10 +59,6 @@ if [[ -f "$OUT/eval/episodes.csv" ]]; then RESUME=(--resume); fi
 stage eval twist-eval --agent "oracle=$OUT/dataset/collect/collect-000/teacher.pt" \
       --agent "student=$OUT/student/agent.pt" --agent zero --dr heldout --device "$DEVICE" \
       --batch 10 --quiet --out "$OUT/eval" "${EVAL[@]}" "${RESUME[@]}"
-{
-  printf '{"preset": "%s", "device": "%s"' "$PRESET" "$DEVICE"
-  for name in collect distil eval; do printf ', "%s_s": %s' "$name" "${SPENT[$name]}"; done
-  printf '}\n'
-} > "$OUT/timings.json"
+write_timings "$OUT/timings.json" "preset=$PRESET" "device=$DEVICE"
 cat "$OUT/timings.json"
 echo "lease run done: results in $OUT"
