@@ -315,7 +315,7 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # thousand behaviour updates that the main job's budget allows; 15-step open-loop
     # overshooting trains what imagination uses. Imagination runs in bfloat16 where the CPU
     # computes it natively: its heads over 256 x 16 imagined states are most of an update's
-    # matrix products (1.30x per update on an AMD EPYC, 1.05x on an Intel Xeon:
+    # matrix products (1.13-1.30x per update on an AMD EPYC, 1.05x on an Intel Xeon:
     # benchmarks/teacher_update_modes.py).
     # The teacher learns for 100K frames (at 28K it had not learned to balance; at 60K
     # three seeds' best teachers scored 826-978 held out, at 100K 982-995: docs/experiments.md,
