@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -56,3 +58,13 @@ def board_events(run: Path) -> tuple[dict[str, list[tuple[int, float]]],
     images = {t: [(e.step, (e.height, e.width)) for e in events.Images(t)]
               for t in tags["images"]}
     return scalars, images
+
+
+def run_script(script: str, out: Path, **settings: str) -> subprocess.CompletedProcess[str]:
+    """``bash scripts/<script> <out>`` with ``settings`` in its environment, in this test
+    session's virtual environment (so the script installs nothing)."""
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, **settings, "TWIST_VENV": sys.prefix}
+    return subprocess.run(["bash", str(root / "scripts" / script), str(out)], env=env,
+                          capture_output=True, text=True, timeout=900)
+

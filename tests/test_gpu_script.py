@@ -4,26 +4,21 @@ records its seconds, and a second run of the same command resumes without redoin
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from tests.conftest import run_script
 
 
 @pytest.mark.usefixtures("gl")
 def test_the_lease_script_runs_every_stage_and_resumes(tmp_path: Path) -> None:
-    env = {**os.environ, "PRESET": "tiny", "DEVICE": "cpu", "STUDENT_STEPS": "4",
-           "TWIST_VENV": sys.prefix}
     out = tmp_path / "lease"
 
     def run() -> subprocess.CompletedProcess[str]:
-        return subprocess.run(["bash", str(ROOT / "scripts" / "gpu.sh"), str(out)], env=env,
-                              capture_output=True, text=True, timeout=600)
+        return run_script("gpu.sh", out, PRESET="tiny", DEVICE="cpu", STUDENT_STEPS="4")
 
     first = run()
     assert first.returncode == 0, first.stderr[-2000:]

@@ -5,27 +5,24 @@ collection or the distillation."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from tests.conftest import run_script
+
 STAGES = ("setup", "machine_speed", "collect", "check_dataset", "distil", "eval")
 
 
 @pytest.mark.slow
 @pytest.mark.usefixtures("gl")
 def test_the_main_job_times_every_stage_and_resumes(tmp_path: Path) -> None:
-    env = {**os.environ, "PRESET": "tiny", "TWIST_VENV": sys.prefix}
     out = tmp_path / "demo"
 
     def run() -> subprocess.CompletedProcess[str]:
-        return subprocess.run(["bash", str(ROOT / "scripts" / "main.sh"), str(out)], env=env,
-                              capture_output=True, text=True, timeout=900)
+        return run_script("main.sh", out, PRESET="tiny")
 
     first = run()
     assert first.returncode == 0, first.stderr[-2000:]
