@@ -61,8 +61,8 @@ def board_events(run: Path) -> tuple[dict[str, list[tuple[int, float]]],
 
 
 def run_script(script: str, out: Path, **settings: str) -> subprocess.CompletedProcess[str]:
-    """``bash scripts/<script> <out>`` with ``settings`` in its environment, in this test
-    session's virtual environment (so the script installs nothing)."""
+    """``bash scripts/<script> <out>`` with ``settings`` in its environment, in the virtual
+    environment that runs these tests (so the script installs nothing)."""
     root = Path(__file__).resolve().parent.parent
     env = {**os.environ, **settings, "TWIST_VENV": sys.prefix}
     return subprocess.run(["bash", str(root / "scripts" / script), str(out)], env=env,
