@@ -13,7 +13,7 @@ import typer
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from twist_cli.common import err, new_app, out, run_app
+from twist_cli.common import err, new_app, out, parse_list, run_app
 from twist_data.errors import TwistError
 from twist_data.export import export_hdf5, export_video
 from twist_data.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
@@ -260,15 +260,19 @@ def render(
     supersample: Annotated[int, typer.Option(help="Render at this multiple and downsample.")] = 1,
     backgrounds: BackgroundsOption = None,
     seed: Annotated[int, typer.Option(help="Seed of the new DR parameters.")] = 0,
+    episodes: Annotated[str | None, typer.Option(
+        help="Comma-separated episode indices to re-render, negative from the end (default: "
+             "all); each renders as it would in a full re-render.")] = None,
 ) -> None:
     """Re-render a simulated dataset's stored physics states under a new DR config into OUT."""
     from twist_data.rerender import rerender_dataset
 
     config = dr_preset(dr, backgrounds)
+    chosen = None if episodes is None else parse_list(episodes, int, "--episodes")
     with progress_bar("rendering") as update:
         rerender_dataset(dataset, out_dir, config, views=views, image_size=image_size,
                          add_views=add_views, supersample=supersample, seed=seed,
-                         on_episode=update)
+                         episodes=chosen, on_episode=update)
     out.print(f"wrote {out_dir}")
 
 

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The main job on the embedded default task, cartpole-balance: train the state teacher with
 # the `quick` preset while writing the matching dataset D (K=2 domain-randomised views per
-# step), then inspect, verify (including a pixel-exact re-render), re-render under held-out
-# DR, export, and draw a contact sheet; then distil the vision student from D offline and
+# step), then inspect, verify (including a pixel-exact re-render), re-render the last episode
+# under held-out DR for its video, export, and draw a contact sheet; then distil the vision student from D offline and
 # evaluate teacher (on states), student (on images) and the zero-action floor on held-out
 # backgrounds.
 # PRESET=tiny gives a smoke run of seconds; SEED=1 (or 2) collects with another seed;
@@ -28,7 +28,7 @@ check_dataset() {  # what twist-data does with D: inspect, verify, re-render, ex
   twist-data info "$OUT/dataset"
   twist-data episodes "$OUT/dataset" --csv "$OUT/episodes.csv"
   twist-data verify "$OUT/dataset" --rerender 20
-  twist-data render "$OUT/dataset" "$OUT/heldout" --dr heldout --views 2
+  twist-data render "$OUT/dataset" "$OUT/heldout" --dr heldout --views 2 --episodes -1
   twist-data export-video "$OUT/dataset" "$OUT/episode-last.mp4" --episode -1
   twist-data export-video "$OUT/heldout" "$OUT/episode-last-heldout.mp4" --episode -1
   twist-data export-hdf5 "$OUT/dataset" "$OUT/dataset.h5"

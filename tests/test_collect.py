@@ -468,6 +468,29 @@ def test_freeze_best_lets_the_best_evaluated_teacher_act_once_learning_ends(
         collect_preset("tiny", freeze_best=True)
 
 
+def test_learning_stops_at_the_first_evaluation_that_reaches_learn_until_return(
+        tmp_path: Path) -> None:
+    # Every cartpole return is >= 0, so the first evaluation after the prefill (100 frames)
+    # reaches 0: the one at 200 frames. The 100-frame one does not count (no teacher acted).
+    config = collect_preset("tiny", frames=400, learn_frames=500, eval_every=100,
+                            learn_until_return=0.0)
+    first = collect(tmp_path, config)
+    assert first.learned_until == 200 and first.updates == config.updates_due(200)
+    resumed = collect(tmp_path, dataclasses.replace(config, frames=600), resume=True)
+    assert resumed.learned_until == 200 and resumed.updates == first.updates
+    runs = tmp_path / "collect" / "collect-000"
+    assert pd.read_csv(runs / "eval.csv")["frames"].tolist() == [100, 200]
+    dataset = open_dataset(tmp_path)
+    steps = [dataset.episode_info(i).teacher_step for i in range(dataset.n_episodes)]
+    assert steps[2:] == [config.updates_due(200)] * 4  # the episodes from 200 frames on
+    assert steps[1] == config.updates_due(100)
+    # A return no evaluation reaches leaves learning to learn_frames.
+    never = collect(tmp_path / "never", dataclasses.replace(config, learn_until_return=1e9))
+    assert never.learned_until is None and never.updates == config.updates_due(400)
+    with pytest.raises(ConfigError, match=r"learn_until_return 990\.0 needs eval_episodes"):
+        collect_preset("tiny", learn_until_return=990.0, eval_episodes=0)
+
+
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:
     done = subprocess.run([*COLLECT, "--out", str(tmp_path), "--task", "nope"],
                           capture_output=True, text=True)

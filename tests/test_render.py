@@ -463,6 +463,23 @@ def test_rerender_new_config_keeps_everything_but_images(sim_dataset: Path, tmp_
     assert check_reproduction(new, n_steps=10) == []
 
 
+def test_rerendering_chosen_episodes_renders_them_as_a_full_rerender_does(
+        sim_dataset: Path, tmp_path: Path) -> None:
+    full = open_dataset(rerender_dataset(sim_dataset, tmp_path / "all", dr_preset("heldout"),
+                                         views=2, seed=5))
+    last_path = rerender_dataset(sim_dataset, tmp_path / "last", dr_preset("heldout"), views=2,
+                                 seed=5, episodes=[-1])
+    last = open_dataset(last_path)
+    assert last.n_episodes == 1 and verify_dataset(last_path).ok
+    assert last.spec.extra["rerendered_episodes"] == [full.n_episodes - 1]
+    np.testing.assert_array_equal(last.episode(0).image, full.episode(1).image)
+    assert last.episode_info(0) == full.episode_info(1)
+    assert not np.array_equal(full.episode(0).image[:5], full.episode(1).image[:5])
+    with pytest.raises(ConfigError, match="dataset has 2 episodes; index 2 is out of range"):
+        rerender_dataset(sim_dataset, tmp_path / "bad", dr_preset("heldout"), episodes=[0, 2])
+    assert not (tmp_path / "bad").exists()
+
+
 def test_rerender_add_views_keeps_the_original_views(sim_dataset: Path, tmp_path: Path) -> None:
     out = rerender_dataset(sim_dataset, tmp_path / "more", dr_preset("heldout"), views=1,
                            add_views=True)

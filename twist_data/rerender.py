@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -96,14 +96,19 @@ def check_reproduction(dataset: MatchingDataset, n_steps: int, seed: int = 0) ->
 def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str], config: DRConfig,
                      views: int = 2, image_size: int | None = None, add_views: bool = False,
                      supersample: int = 1, seed: int = 0, layout: StorageLayout | None = None,
+                     episodes: Sequence[int] | None = None,
                      on_episode: Callable[[int, int], None] | None = None) -> Path:
     """Write a new dataset at ``out`` with the states, actions and rewards of ``source`` and
     images rendered under ``config``; with ``add_views`` the source's views are kept and the
-    new ones appended. The source is only read."""
+    new ones appended. ``episodes``: the source's episode indices to re-render (negative ones
+    count from the end; None: all); each episode's DR draws depend on ``seed`` and its index
+    in the source alone, so a subset renders exactly as the same episodes of a full
+    re-render. The source is only read."""
     if image_size is not None and image_size < 1:
         raise ConfigError(f"image_size must be >= 1 (or omitted for the dataset's), got "
                           f"{image_size}")
     src = open_dataset(source)
+    chosen = _episode_indices(episodes, src.n_episodes)
     spec = src.spec
     blocks = render_blocks(spec) if add_views else []
     size = spec.image_height if image_size is None else image_size
@@ -119,12 +124,13 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
         new_spec = dataclasses.replace(
             spec, views=kept + views, image_height=size, image_width=size,
             extra={**spec.extra, "render": [*blocks, new_block], "versions": library_versions(),
-                   "rerendered_from": str(Path(source))},
+                   "rerendered_from": str(Path(source)),
+                   **({} if episodes is None else {"rerendered_episodes": chosen})},
         )
         sampler = renderer.sampler(seed)
         writers: dict[str, ShardWriter] = {}
         try:
-            for index in range(src.n_episodes):
+            for done, index in enumerate(chosen, 1):
                 shard, _ = src.episode_location(index)
                 name = src.shards[shard].name
                 if name not in writers:
@@ -135,12 +141,25 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
                     new = _concat_views(episode, new)
                 writers[name].append(new, info)
                 if on_episode is not None:
-                    on_episode(index + 1, src.n_episodes)
+                    on_episode(done, len(chosen))
         finally:
             for writer in writers.values():
                 writer.close()
-    log.info("re-rendered %d episodes of %s into %s", src.n_episodes, source, out)
+    log.info("re-rendered %d episodes of %s into %s", len(chosen), source, out)
     return out
+
+
+def _episode_indices(episodes: Sequence[int] | None, n_episodes: int) -> list[int]:
+    """``episodes`` as sorted, distinct, non-negative indices; all of them for None."""
+    if episodes is None:
+        return list(range(n_episodes))
+    if not episodes:
+        raise ConfigError("no episodes chosen to re-render; omit the choice for all of them")
+    for index in episodes:
+        if not -n_episodes <= index < n_episodes:
+            raise ConfigError(f"the dataset has {n_episodes} episodes; index {index} is out "
+                              "of range")
+    return sorted({index % n_episodes for index in episodes})
 
 
 def _render_episode(renderer: DRRenderer, sampler: Any, episode: Episode, seed: int) -> Episode:
