@@ -8,8 +8,7 @@
 #   bash scripts/gpu.sh [OUT]        # OUT defaults to runs/gpu
 #
 # Settings (environment): DEVICE (cuda), PRESET (paper), FRAMES (D's frames, 120000),
-# LEARN_FRAMES (frames the teacher learns for at most, 100000), LEARN_UNTIL_RETURN (the
-# evaluation return at which it stops learning sooner, 990), STUDENT_STEPS (10000), RECIPE (dense),
+# LEARN_FRAMES (frames the teacher learns for, 100000), STUDENT_STEPS (10000), RECIPE (dense),
 # EVAL_EPISODES (10), TASK (cartpole-balance). PRESET=tiny DEVICE=cpu runs it at test sizes
 # in seconds (the preset's own frames; tests/test_gpu_script.py does). The frame budget is a
 # plan for a 25-minute lease: each stage's rate, measured at paper sizes on an H200, adds up
@@ -32,7 +31,7 @@ mkdir -p "$OUT"
 BUDGET=()
 if [[ "$PRESET" != tiny ]]; then
   BUDGET=(--frames "${FRAMES:-120000}" --set "learn_frames=${LEARN_FRAMES:-100000}"
-          --set "learn_until_return=${LEARN_UNTIL_RETURN:-990}" --set freeze_best=true)
+          --set freeze_best=true)
 fi
 STEPS=()
 if [[ -n "${STUDENT_STEPS:-}" || "$PRESET" != tiny ]]; then STEPS=(--steps "${STUDENT_STEPS:-10000}"); fi

@@ -109,10 +109,11 @@ class CollectConfig:
     learn_until_return: float | None = None
     """Evaluation return at which the teacher stops learning, if one reaches it before
     ``learn_frames``; from the next episode on it acts frozen (with ``freeze_best``, the best
-    evaluated teacher, which is then this one), as after ``learn_frames``: a teacher that holds
-    the task's ceiling gains nothing the student needs from more updates, and on the CPU each
-    ``quick`` update costs ~0.25 s, 16 frames' worth. None: learning ends at ``learn_frames``
-    (or ``frames``) only."""
+    evaluated teacher, which is then this one), as after ``learn_frames``: a teacher at the
+    task's ceiling has little left to learn, and on the CPU each ``quick`` update costs
+    ~0.25 s, 16 frames' worth. It also changes D, more of which the frozen teacher plays
+    (docs/experiments.md measured a student of such a D). None: learning ends at
+    ``learn_frames`` (or ``frames``) only."""
     freeze_best: bool = False
     """At ``learn_frames`` the teacher of the best evaluation so far (``best.pt``), not the
     last one, acts frozen for the rest of D: a Dreamer's evaluation return swings from one
@@ -334,12 +335,12 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # episodes tracks the teacher far better than from 28 (docs/experiments.md, the student
     # short of data). Evaluations of 10 episodes every 2K frames (state only, ~1 s each) give
     # freeze_best twice the candidates of 3 episodes every 4K, each estimated more steadily.
-    # Learning stops early at an evaluation of 990 (the pole held upright through nearly every
-    # step of all 10 episodes): of those three seeds, seed 0 first reached it at 76K frames
-    # with the teacher that, frozen, scored 994.8 held out, seed 2 at 72K, and seed 1 (best
-    # 981) never, so it learns to 100K as before; each 1K frames not learned saves 62 updates.
+    # Learning does not stop at a first evaluation of 990 (`learn_until_return`): that saved
+    # 10 of the main job's 67 minutes with the very same teacher, but its student, distilled
+    # from the D with 30K more frozen frames, scored 845.8 over 30 held-out episodes, the
+    # lowest of the four seed-0 students measured (888.9-934.2; docs/experiments.md, "Does
+    # the teacher stop learning at an evaluation of 990 without harm to its student?").
     "quick": CollectConfig(model="quick", frames=300_000, learn_frames=100_000, freeze_best=True,
-                           learn_until_return=990.0,
                            supersample=2, eval_every=2_000, eval_episodes=10,
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,
                            pretrain_updates=2_000, behaviour_from=2_000, train_every=4,
