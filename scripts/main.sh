@@ -2,9 +2,9 @@
 # The main job on the embedded default task, cartpole-balance: train the state teacher with
 # the `quick` preset while writing the matching dataset D (K=2 domain-randomised views per
 # step), then inspect, verify (including a pixel-exact re-render), re-render the last episode
-# under held-out DR for its video, export, and draw a contact sheet; then distil the vision student from D offline and
-# evaluate teacher (on states), student (on images) and the zero-action floor on held-out
-# backgrounds.
+# under held-out DR for its video, export, and draw a contact sheet; then distil the vision
+# student from D offline and evaluate teacher (on states), student (on images) and the
+# zero-action floor on held-out backgrounds.
 # PRESET=tiny gives a smoke run of seconds; SEED=1 (or 2) collects with another seed;
 # EVAL_EPISODES sets the held-out episodes (10). Running it again resumes an interrupted run.
 # OUT/timings.json gets each stage's seconds and, to compare machines, the seconds of one eager

@@ -336,7 +336,7 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # short of data). Evaluations of 10 episodes every 2K frames (state only, ~1 s each) give
     # freeze_best twice the candidates of 3 episodes every 4K, each estimated more steadily.
     # Learning does not stop at a first evaluation of 990 (`learn_until_return`): that saved
-    # 10 of the main job's 67 minutes with the very same teacher, but its student, distilled
+    # 9.6 minutes of the main job's collection with the very same teacher, but its student, distilled
     # from the D with 30K more frozen frames, scored 845.8 over 30 held-out episodes, the
     # lowest of the four seed-0 students measured (888.9-934.2; docs/experiments.md, "Does
     # the teacher stop learning at an evaluation of 990 without harm to its student?").
@@ -504,8 +504,8 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
         raise CollectError(f"shard {path.name!r} already exists in {str(out)!r}; pass --resume "
                            "to continue it, or --shard to add another")
     # compile is how, not what, the run computes: a resumed run may move to another device.
-    extendable = ("frames", "learn_frames", "learn_until_return", "freeze_best", "frozen_noise", "push_every",
-                  "push_steps", "student", "compile")
+    extendable = ("frames", "learn_frames", "learn_until_return", "freeze_best", "frozen_noise",
+                  "push_every", "push_steps", "student", "compile")
     # The shard, not the config, marks an existing run here (checked above).
     if resume:
         _run_folder(folder).open(config, True, extendable,
