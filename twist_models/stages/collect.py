@@ -337,9 +337,10 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # freeze_best twice the candidates of 3 episodes every 4K, each estimated more steadily.
     # Learning does not stop at a first evaluation of 990 (`learn_until_return`): that saved
     # 9.6 minutes of the main job's collection with the very same teacher, but its student, distilled
-    # from the D with 30K more frozen frames, scored 845.8 over 30 held-out episodes, the
-    # lowest of the four seed-0 students measured (888.9-934.2; docs/experiments.md, "Does
-    # the teacher stop learning at an evaluation of 990 without harm to its student?").
+    # from the D with 30K more frozen frames, scored 845.8 and 885.1 (two distillation seeds)
+    # over 30 held-out episodes against 888.9-934.2 for earlier seed-0 students: until a
+    # paired comparison decides, the preset learns to 100K (docs/experiments.md, "Does the
+    # teacher stop learning at an evaluation of 990 without harm to its student?").
     "quick": CollectConfig(model="quick", frames=300_000, learn_frames=100_000, freeze_best=True,
                            supersample=2, eval_every=2_000, eval_episodes=10,
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,
