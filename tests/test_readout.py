@@ -12,9 +12,11 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
+from tests.conftest import board_events
 from twist_data.errors import ConfigError
 from twist_data.reader import open_dataset
 from twist_data.synth import _DT, SYNTH_MIRROR, SynthConfig, write_synthetic_dataset
@@ -28,12 +30,15 @@ from twist_models.config import (
     teacher_preset,
     to_json,
 )
+from twist_models.curves import student_progress
 from twist_models.distillation import Distillation, distil_preset
 from twist_models.frame_targets import FrameRows
 from twist_models.losses import readout_loss
 from twist_models.networks import ImageEncoder
 from twist_models.readout import (
     MAX_ATYPICAL_SHARE,
+    TYPICAL_SPREADS,
+    StateReadOut,
     pair_velocities,
     robust_standardisation,
     training_frames,
@@ -116,6 +121,26 @@ def test_readout_errors_and_loss_by_hand() -> None:
     e = np.array([0.25, 10.0, 4.0])
     huber = np.where(np.abs(e) <= 1, 0.5 * e**2, np.abs(e) - 0.5)
     assert float(readout_loss(errors)) == pytest.approx(huber.mean(), rel=1e-5)
+
+
+def test_the_typical_read_error_leaves_out_the_frames_the_first_stage_does() -> None:
+    config = ReadOutConfig(state_dim=5, read=(0, 1, 2), angles=((1, 2),),
+                           velocities=((3, 0), (4, 1, 2)), gains=(1.0, 1.0),
+                           encoder=MLPConfig(layers=1, units=4))
+    readout = StateReadOut(config, features=3)
+    readout.set_standardisation(np.zeros(3), np.array([2.0, 0.1, 0.1]))
+    with torch.no_grad():  # features are the read components in spreads
+        readout.head.weight.copy_(torch.eye(3))
+        readout.head.bias.zero_()
+    upright = [1.0, 0.0, 0.0, 0.0]
+    # x read 0.5 off at x = 1 (typical), and 50 off at x = 100, 50 spreads from the median.
+    state = torch.tensor([[1.0, *upright], [100.0, *upright]])
+    features = torch.tensor([[1.5 / 2, 10.0, 0.0], [0.0, 10.0, 0.0]])
+    every = np.sqrt((0.25**2 + 50.0**2) / 6)
+    assert readout.error(features, state) == pytest.approx(every, rel=1e-5)
+    assert readout.error(features, state, TYPICAL_SPREADS) == pytest.approx(
+        np.sqrt(0.25**2 / 3), rel=1e-5)
+    assert np.isnan(readout.error(features[1:], state[1:], TYPICAL_SPREADS))
 
 
 def test_exact_positions_rebuild_ds_state_and_the_teachers_embedding(inputs) -> None:
@@ -291,6 +316,23 @@ def test_the_readout_recipe_travels_with_the_run_and_the_bundle(inputs, tmp_path
     _, state = agent.act(image, state)
     assert state.frames.shape == (1, 3)  # the last read-out: x, cos, sin
     assert "read_error" in (tmp_path / "run" / "heldout.csv").read_text().splitlines()[0]
+
+
+def test_a_readout_runs_agreement_curve_advances_with_its_single_frame_updates(
+        inputs, tmp_path: Path) -> None:
+    dataset, teacher_path, _, _ = inputs
+    distil(dataset, tmp_path / "run", distil_preset("tiny", "readout", frame_eval_every=2),
+           teacher=teacher_path)
+    heldout = pd.read_csv(tmp_path / "run" / "heldout.csv")
+    # No update on windows at all: the curve's place is the single-frame updates.
+    assert list(heldout["updates"]) == [0, 0, 0]
+    assert list(student_progress(heldout)) == [0, 2, 4]
+    assert heldout["read_error_typical"].notna().all()
+    scalars, images = board_events(tmp_path / "run")
+    assert [step for step, _ in scalars["heldout/read_error"]] == [0, 2, 4]
+    assert [step for step, _ in images["heldout/latent-agreement"]] == [0, 4]
+    height, width = images["heldout/latent-agreement"][-1][1]
+    assert width > 3 * height  # three panels: h, the KLs and the read-out's error
 
 
 def test_a_resumed_first_stage_grows_to_the_new_frame_steps(inputs, tmp_path: Path) -> None:

@@ -60,17 +60,35 @@ def plot_learning_curves(runs: Mapping[str, str | os.PathLike[str]],
     return Path(out)
 
 
+def student_progress(table: pd.DataFrame) -> pd.Series:
+    """Each row's place in a run of ``heldout.csv``: single-frame updates plus updates on
+    windows, since a recipe with a single-frame stage runs it before any window update (the
+    ``readout`` recipe runs no window update at all, so ``updates`` alone stays 0)."""
+    return table["updates"] + table.get("frame_updates", 0)
+
+
 def plot_agreement(heldout_csv: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
-    """Held-out latent agreement (h-MSE and posterior KL, log scale) against updates."""
+    """Held-out latent agreement (h-MSE and posterior KL, log scale) and, for a student with a
+    read-out, its error, against the student's updates (:func:`student_progress`); a dashed
+    line marks where updates on windows follow a single-frame stage."""
     table = pd.read_csv(heldout_csv)
-    with figure(out, (8, 3.2), ncols=2) as (fig, axes):
-        for ax, columns, label in ((axes[0], ("h_mse", "imagined_h_mse"), "h MSE"),
-                                   (axes[1], ("post_kl", "prior_kl"), "KL(student || teacher)")):
+    panels = [(("h_mse", "imagined_h_mse"), "h MSE"),
+              (("post_kl", "prior_kl"), "KL(student || teacher)")]
+    if "read_error" in table and table["read_error"].notna().any():
+        panels.append((tuple(c for c in ("read_error", "read_error_typical") if c in table),
+                       "read-out error (robust spreads)"))
+    x = student_progress(table)
+    window_start = (int(table["frame_updates"].max())
+                    if "frame_updates" in table and (table["updates"] > 0).any() else 0)
+    with figure(out, (4 * len(panels), 3.2), ncols=len(panels)) as (fig, axes):
+        for ax, (columns, label) in zip(axes, panels, strict=True):
             for column in columns:
-                ax.plot(table["updates"], table[column].clip(lower=1e-6), marker="o",
-                        markersize=3, label=column)
+                ax.plot(x, table[column].clip(lower=1e-6), marker="o", markersize=3,
+                        label=column)
+            if window_start:
+                ax.axvline(window_start, linestyle="--", linewidth=1, color="grey")
             ax.set_yscale("log")
-            ax.set_xlabel("student updates")
+            ax.set_xlabel("student updates (single frames, then windows)")
             ax.set_ylabel(label)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)

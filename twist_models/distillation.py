@@ -42,6 +42,7 @@ from twist_models.losses import (
     frame_posterior_loss,
     imagined_distillation_loss,
 )
+from twist_models.readout import TYPICAL_SPREADS
 from twist_models.student import Student
 from twist_models.teacher import Teacher
 
@@ -490,8 +491,10 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
         frame_kl = frame_posterior_loss(student.rssm.posterior_logits(t_post["deter"], embed),
                                         t_post["logits"])
         if student.readout is not None:
-            frames["read_error"] = student.readout.error(student.encoder(batch["image"]),
-                                                         batch["state"])
+            features = student.encoder(batch["image"])
+            frames["read_error"] = student.readout.error(features, batch["state"])
+            frames["read_error_typical"] = student.readout.error(features, batch["state"],
+                                                                 TYPICAL_SPREADS)
     deter = student.config.rssm.deter
     h_mse = float(terms["h"]) / deter
     # An h-MSE means little without the scale of the teacher's h (on cartpole its variance is

@@ -218,10 +218,18 @@ class StateReadOut(nn.Module):
         return torch.stack(parts, -1) / self.scale
 
     @torch.no_grad()
-    def error(self, features: torch.Tensor, state: torch.Tensor) -> float:
+    def error(self, features: torch.Tensor, state: torch.Tensor,
+              within: float | None = None) -> float:
         """RMS of :meth:`errors` over steps and components: features [..., F], state
-        [..., S] -> a float."""
-        return float(self.errors(self.read(features), state).pow(2).mean().sqrt())
+        [..., S] -> a float. With ``within``, only over the steps whose every read component
+        lies within that many robust spreads of D's median, as :func:`typical` picks the
+        frames the first stage trains on (NaN where none does): a fallen pole's frames, read
+        tens of spreads off by design, would otherwise outweigh every other frame's error."""
+        errors = self.errors(self.read(features), state)
+        if within is not None:
+            read = state[..., list(self.config.read)]
+            errors = errors[((read - self.mean).abs() <= within * self.scale).all(-1)]
+        return float(errors.pow(2).mean().sqrt()) if errors.numel() else float("nan")
 
     def positions(self, features: torch.Tensor, mirrored: torch.Tensor | None = None
                   ) -> torch.Tensor:
