@@ -8,9 +8,12 @@ stage. Variants: ``fp32`` (the default path: channels_last input, float32), ``co
 ``--compile``, ``bf16_compiled`` (the same forward through ``torch.compile``, its first call's
 compilation timed apart). Rounds of
 the variants are interleaved so that a machine's drift affects each alike; medians reported.
+With ``--profile``, ``bf16_time_share`` splits the ``bf16`` pass's operator time (forward and
+backward, from ``torch.profiler``) into convolutions, the normalisation, the activation and
+the rest: what a faster implementation of each could save at most.
 
 Prints one JSON line. ``python benchmarks/encoder_speed.py [--preset quick] [--norm layer]
-[--batch 64] [--rounds 15] [--threads N] [--compile]``
+[--batch 64] [--rounds 15] [--threads N] [--compile] [--profile]``
 """
 
 from __future__ import annotations
@@ -36,6 +39,28 @@ def timed(step: Callable[[], None]) -> float:
     return time.perf_counter() - start
 
 
+#: Operator kinds of ``--profile``, by a substring of the ATen operator's name (forward and
+#: backward alike); the first that matches wins.
+OPERATOR_KINDS = {"convolution": "conv", "normalisation": "norm", "activation": "elu"}
+
+
+def time_shares(step: Callable[[], None], passes: int = 10) -> dict[str, float]:
+    """Share of ``step``'s self CPU time in each of :data:`OPERATOR_KINDS` and the rest."""
+    from torch.profiler import profile
+
+    with profile() as prof:
+        for _ in range(passes):
+            step()
+    totals = dict.fromkeys([*OPERATOR_KINDS, "other"], 0.0)
+    for event in prof.key_averages():
+        if not event.key.startswith("aten::"):
+            continue  # autograd and optimiser wrappers: their time is their operators'
+        kind = next((k for k, part in OPERATOR_KINDS.items() if part in event.key), "other")
+        totals[kind] += event.self_cpu_time_total
+    whole = sum(totals.values())
+    return {k: round(v / whole, 3) for k, v in totals.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--preset", default="quick", choices=list(PRESETS))
@@ -45,6 +70,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's)")
     parser.add_argument("--compile", action="store_true",
                         help="also torch.compile the bf16 forward (backward through it)")
+    parser.add_argument("--profile", action="store_true",
+                        help="split the bf16 pass's operator time by kind of operator")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -86,6 +113,7 @@ def main() -> None:
         for name, step in variants.items():
             times[name].append(timed(step))
     medians = {name: statistics.median(t) for name, t in times.items()}
+    shares = time_shares(variants["bf16"]) if args.profile else None
     base = medians["fp32"]
     print(json.dumps({
         "benchmark": "encoder_speed", "preset": args.preset, "norm": args.norm,
@@ -94,6 +122,7 @@ def main() -> None:
         "median_ms": {k: round(1000 * v, 2) for k, v in medians.items()},
         "speedup_vs_fp32": {k: round(base / v, 3) for k, v in medians.items()},
         "compile_s": None if compile_s is None else round(compile_s, 1),
+        "bf16_time_share": shares,
     }))
 
 
