@@ -110,8 +110,9 @@ HELDOUT_COLUMNS = ("updates", "frame_updates", "h_mse", "h_explained", "post_kl"
                    "read_error", "read_error_typical")
 FRAME_METRIC_COLUMNS = ("frame_updates", "wall_s", "updates_per_s", "loss", "frame_post_kl",
                         "state", "readout", "grad_norm")
-#: Evaluations between redrawn agreement plots. A plot took 0.8 s on the 2-core CPU, more
-#: than the evaluation (0.76 s); the `quick` read-out stage evaluates 90 times.
+#: Evaluations between redrawn agreement plots: on the 2-core CPU a redraw cost about what the
+#: evaluation itself does (0.8 s each under a profiler), and the `quick` read-out stage
+#: evaluates 90 times.
 PLOT_EVERY_EVALUATIONS = 10
 FINAL_STUDENT = "student.pt"
 AGENT = "agent.pt"
@@ -508,10 +509,9 @@ class _Run:
                         if key in row:
                             self.board.scalar(f"train/{key}", row[key], self.progress)
                 if on_progress is not None:
-                    on_progress(Progress(self.frame_updates + self.updates,
-                                         c.frame_steps + c.steps, row["updates_per_s"],
-                                         row["data_wait_share"], row["loss"],
-                                         heldout["h_mse"]))
+                    on_progress(Progress(self.progress, c.frame_steps + c.steps,
+                                         row["updates_per_s"], row["data_wait_share"],
+                                         row["loss"], heldout["h_mse"]))
                 sums, interval = {}, {"train": 0.0, "wait": 0.0, "done": 0}
             if self.updates % c.checkpoint_every == 0 or self.updates == c.steps:
                 self._checkpoint(self.run_folder.latest)
