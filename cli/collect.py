@@ -80,7 +80,9 @@ def main(
                               "instead of passing --preset")
         config = recorded_config(config_file, "collect", CollectConfig).with_settings(given)
     else:
-        config = collect_preset(preset or "quick", **given)
+        # Settings replace the preset's fields as given: `--set learn_until_return=null` clears
+        # one (collect_preset's keywords would ignore a None).
+        config = collect_preset(preset or "quick").with_settings(given)
     resolve_device(device)  # before the bar: a refusal is then the only line printed
     with progress_bar(quiet, "collecting", describe) as report:
         summary = collect(out_dir, config, shard=name, resume=resume, device=device,

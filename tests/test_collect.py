@@ -31,6 +31,7 @@ from twist_models.checkpoint import read_checkpoint
 from twist_models.config import teacher_preset
 from twist_models.policies import Pushes
 from twist_models.stages.collect import (
+    COLLECT_PRESETS,
     CollectConfig,
     CollectError,
     collect,
@@ -537,3 +538,23 @@ def test_the_teachers_sizes_are_set_through_nested_keys(tmp_path: Path) -> None:
                                           "cartpole-balance has 5 and 1"):
         collect(tmp_path / "other", dataclasses.replace(other, task="cartpole-balance"))
     assert not (tmp_path / "other" / "collect-000.zarr").exists()
+
+
+def test_a_cli_setting_of_null_clears_the_presets_value(tmp_path: Path, monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    import twist_cli.collect as collect_cli
+
+    seen: list[CollectConfig] = []
+
+    def capture(out, config, **_):  # the config the CLI would collect with, not a run
+        seen.append(config)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(collect_cli, "collect", capture)
+    for setting, expected in (("learn_until_return=null", None), ("learn_frames=50000", 990.0)):
+        CliRunner().invoke(collect_cli.app, ["--out", str(tmp_path / "D"), "--preset", "quick",
+                                             "--set", setting])
+        assert seen[-1].learn_until_return == expected
+    assert COLLECT_PRESETS["quick"].learn_until_return == 990.0
+    assert seen[-1].learn_frames == 50_000
