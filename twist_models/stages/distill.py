@@ -501,8 +501,7 @@ class _Run:
                        "updates_per_s": interval["done"] / interval["train"],
                        "data_wait_share": interval["wait"] / interval["train"],
                        **{k: v / interval["done"] for k, v in sums.items()}}
-                heldout = self.evaluate(plot=self.updates == c.steps or _plots_at(
-                    self.updates, c.eval_every))
+                heldout = self.evaluate(plot=_plots_at(self.updates, c.eval_every, c.steps))
                 if self.writes:
                     append_csv(self.out / "metrics.csv", row, METRIC_COLUMNS)
                     for key in (*TERMS, "loss"):
@@ -588,8 +587,8 @@ class _Run:
                 self.seconds, wall = self.seconds + now - wall, now
                 row = {"frame_updates": self.frame_updates, "wall_s": round(self.seconds, 2),
                        "updates_per_s": done / spent, **{k: v / done for k, v in sums.items()}}
-                heldout = self.evaluate(plot=self.frame_updates == c.frame_steps or _plots_at(
-                    self.frame_updates, c.frame_eval_every))
+                heldout = self.evaluate(plot=_plots_at(self.frame_updates, c.frame_eval_every,
+                                                       c.frame_steps))
                 if self.writes:
                     append_csv(self.out / "frame-metrics.csv", row, FRAME_METRIC_COLUMNS)
                 if on_progress is not None:
@@ -623,10 +622,11 @@ class _Run:
         return path
 
 
-def _plots_at(done: int, every: int) -> bool:
-    """Whether the evaluation after ``done`` updates, one every ``every``, redraws the plot:
-    every :data:`PLOT_EVERY_EVALUATIONS`-th (and, at the callers, a stage's last)."""
-    return (done // every) % PLOT_EVERY_EVALUATIONS == 0
+def _plots_at(done: int, every: int, last: int) -> bool:
+    """Whether the evaluation after ``done`` of a stage's ``last`` updates, one every
+    ``every``, redraws the plot: every :data:`PLOT_EVERY_EVALUATIONS`-th, and the stage's
+    last."""
+    return done == last or (done // every) % PLOT_EVERY_EVALUATIONS == 0
 
 
 def load_student(path: str | os.PathLike[str]) -> tuple[Student, dict[str, Any]]:
