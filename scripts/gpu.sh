@@ -8,9 +8,17 @@
 #   bash scripts/gpu.sh [OUT]        # OUT defaults to runs/gpu
 #
 # Settings (environment): DEVICE (cuda), PRESET (paper), FRAMES (D's frames, 120000),
-# LEARN_FRAMES (frames the teacher learns for, 100000), STUDENT_STEPS (10000), RECIPE (dense),
-# EVAL_EPISODES (10), TASK (cartpole-balance). PRESET=tiny DEVICE=cpu runs it at test sizes
-# in seconds (the preset's own frames; tests/test_gpu_script.py does). The frame budget is a
+# LEARN_FRAMES (frames the teacher learns for, 100000), LEARN_UNTIL_RETURN (990: learning
+# stops at the first evaluation of it, as in the quick preset; "null" never), STUDENT_STEPS
+# (10000), RECIPE (dense), EVAL_EPISODES (10), TASK (cartpole-balance), and COLLECT_SET and
+# DISTIL_SET: space-separated KEY=VALUE settings passed on as --set (e.g.
+# DISTIL_SET="frame_steps=20000"), COMPILE (on: both stages' updates compiled, with CUDA
+# graphs, on a CUDA device; off at tiny size, where compiling takes minutes for updates that
+# take seconds). PRESET=tiny DEVICE=cpu runs it at test sizes in seconds (the preset's own
+# frames; tests/test_gpu_script.py does).
+#
+# On a machine that cannot reach a package index but has a CUDA torch, install the wheels
+# that scripts/offline_bundle.sh gathered elsewhere (scripts/offline_install.sh) first. The frame budget is a
 # plan for a 25-minute lease: each stage's rate, measured at paper sizes on an H200, adds up
 # to ~19 minutes there plus the dense recipe's single-frame stage (docs/performance.md), but
 # the whole has not run on a GPU: the first run's timings.json is the measurement.
@@ -28,18 +36,25 @@ TASK="${TASK:-cartpole-balance}"
 PRESET="${PRESET:-paper}"
 DEVICE="${DEVICE:-cuda}"
 mkdir -p "$OUT"
-BUDGET=()
+COLLECT_SETTINGS=()
 if [[ "$PRESET" != tiny ]]; then
-  BUDGET=(--frames "${FRAMES:-120000}" --set "learn_frames=${LEARN_FRAMES:-100000}"
-          --set freeze_best=true)
+  COLLECT_SETTINGS=(--frames "${FRAMES:-120000}" --set "learn_frames=${LEARN_FRAMES:-100000}"
+          --set freeze_best=true --set "learn_until_return=${LEARN_UNTIL_RETURN:-990}")
 fi
 STEPS=()
 if [[ -n "${STUDENT_STEPS:-}" || "$PRESET" != tiny ]]; then STEPS=(--steps "${STUDENT_STEPS:-10000}"); fi
-# On a GPU the window objective runs compiled with CUDA graphs (the collector's teacher does
-# so by itself there): on an H200 the dense recipe's whole window objective ran 49 updates/s
-# compiled, after ~4 minutes of compiling (docs/performance.md).
-DISTIL_COMPILE=()
-if [[ "$DEVICE" == cuda* ]]; then DISTIL_COMPILE=(--set compile=true); fi
+# On a GPU both stages' updates run compiled with CUDA graphs: on an H200 the teacher's update
+# took 22.8 ms compiled against 195 eager, and the dense recipe's whole window objective ran
+# 49 updates/s, after ~3 and ~4 minutes of compiling (docs/performance.md).
+COMPILE="${COMPILE:-$([[ "$PRESET" == tiny ]] && echo off || echo on)}"
+DISTIL_SETTINGS=()
+if [[ "$DEVICE" == cuda* ]]; then
+  COLLECT_SETTINGS+=(--set "compile=$COMPILE")
+  DISTIL_SETTINGS=(--set "compile=$([[ "$COMPILE" == on ]] && echo true || echo false)")
+fi
+# The caller's settings come last, so they override the script's.
+for setting in ${COLLECT_SET:-}; do COLLECT_SETTINGS+=(--set "$setting"); done
+for setting in ${DISTIL_SET:-}; do DISTIL_SETTINGS+=(--set "$setting"); done
 EVAL=(--episodes "${EVAL_EPISODES:-10}")
 if [[ "$PRESET" == tiny ]]; then EVAL=(--episodes 2 --max-steps 20); fi
 
@@ -48,12 +63,12 @@ if [[ "$PRESET" == tiny ]]; then EVAL=(--episodes 2 --max-steps 20); fi
 RESUME=()
 if [[ -d "$OUT/dataset/collect" ]]; then RESUME=(--resume); fi
 stage collect twist-collect --task "$TASK" --preset "$PRESET" --device "$DEVICE" \
-      --out "$OUT/dataset" --quiet "${BUDGET[@]}" "${RESUME[@]}"
+      --out "$OUT/dataset" --quiet "${COLLECT_SETTINGS[@]}" "${RESUME[@]}"
 RESUME=()
 if [[ -f "$OUT/student/config.json" ]]; then RESUME=(--resume); fi
 stage distil twist-distil --dataset "$OUT/dataset" --out "$OUT/student" --preset "$PRESET" \
       --recipe "${RECIPE:-dense}" --device "$DEVICE" --quiet "${STEPS[@]}" \
-      "${DISTIL_COMPILE[@]}" "${RESUME[@]}"
+      "${DISTIL_SETTINGS[@]}" "${RESUME[@]}"
 RESUME=()
 if [[ -f "$OUT/eval/episodes.csv" ]]; then RESUME=(--resume); fi
 stage eval twist-eval --agent "oracle=$OUT/dataset/collect/collect-000/teacher.pt" \
