@@ -377,6 +377,8 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
                                                "action_weight=-1", "--out", str(tmp_path / "g")],
         "encoder_norm must be one of none, layer, got 'batch'": [
             "--teacher", str(teacher), "--set", "encoder_norm=batch", "--out", str(tmp_path / "i")],
+        "encoder_depth must be a positive number of channels or null, got 0": [
+            "--teacher", str(teacher), "--set", "encoder_depth=0", "--out", str(tmp_path / "k")],
         "rare_states must be >= 0, got -1": ["--teacher", str(teacher), "--set",
                                              "rare_states=-1", "--out", str(tmp_path / "j")],
         "KEY one of": ["--teacher", str(teacher), "--set", "nope=1", "--out",
@@ -480,6 +482,20 @@ def test_frozen_dynamics_train_only_the_encoder_and_posterior(distil_inputs, tmp
     assert {"img_in", "gru", "img_out"} <= changed(freeze=False)
     with pytest.raises(ConfigError, match="needs copy_dynamics"):
         distil_preset("tiny", freeze_dynamics=True, copy_dynamics=False)
+
+
+def test_a_student_encoder_of_a_chosen_width_is_trained_saved_and_reloaded(
+        distil_inputs, tmp_path) -> None:
+    dataset, teacher_path = distil_inputs
+    widths = {}
+    for depth in (None, 6):
+        summary = distil(dataset, tmp_path / str(depth),
+                         distil_preset("tiny", steps=2, encoder_depth=depth), teacher=teacher_path)
+        student = load_student(summary.student)[0]
+        convolutions = [m for m in student.encoder.modules() if isinstance(m, torch.nn.Conv2d)]
+        widths[depth] = [c.out_channels for c in convolutions]
+    assert widths[None] == [4, 8, 16, 32]  # the tiny preset's depth 4, doubled at each layer
+    assert widths[6] == [6, 12, 24, 48]
 
 
 def test_stacked_frames_repeat_at_episode_starts_and_agree_step_by_step() -> None:

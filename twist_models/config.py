@@ -442,14 +442,18 @@ def image_dreamer_preset(name: str, state_dim: int, action_dim: int, image_size:
 
 def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
                    frames: int = 1, norm: str = "none", state_head: bool = False,
-                   readout: ReadOutConfig | None = None) -> StudentConfig:
-    """The student of size preset ``name`` (its CNN, normalised by ``norm``) for ``teacher``,
+                   readout: ReadOutConfig | None = None,
+                   depth: int | None = None) -> StudentConfig:
+    """The student of size preset ``name`` (its CNN, normalised by ``norm``, ``depth``
+    channels wide if given) for ``teacher``,
     whose RSSM it copies, reading ``frames`` images per step, with a read-out head of the
     teacher's state if ``state_head``, reading the state as ``readout`` pairs it if given."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
     cnn = dataclasses.replace(PRESETS[name].get("cnn", CNNConfig()), image_size=image_size,
                               norm=norm)
+    if depth is not None:
+        cnn = dataclasses.replace(cnn, depth=depth)
     return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,
                          cnn=cnn, frames=frames,
                          state_dim=teacher.world_model.state_dim if state_head else 0,

@@ -110,6 +110,9 @@ class DistilConfig:
     encoder_norm: str = "none"
     """Normalisation in the student's CNN: ``none`` (DreamerV2's, the paper's) or ``layer``
     (see :class:`~twist_models.config.CNNConfig`)."""
+    encoder_depth: int | None = None
+    """Channels of the student CNN's first convolution (doubled at each layer); None: the
+    size preset's (48 ``paper``, 24 ``quick``)."""
     view: int | None = None
     """Camera view shown at every step; None: a random one of the K per step."""
     frame_post_weight: float = 0.0
@@ -234,6 +237,9 @@ class DistilConfig:
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
+        if self.encoder_depth is not None and self.encoder_depth < 1:
+            raise ConfigError(f"encoder_depth must be a positive number of channels or null, "
+                              f"got {self.encoder_depth}")
         require_choice(self, "readout_weights", ("robust", "sensitivity", "frame"))
         require_choice(self, "readout_frames", ("auto", "typical", "all"))
         require_choice(self, "frame_augment", ("none", "colour"))
