@@ -9,19 +9,21 @@
 #
 # Settings (environment): DEVICE (cuda), PRESET (paper), FRAMES (D's frames, 120000),
 # LEARN_FRAMES (frames the teacher learns for, 100000), LEARN_UNTIL_RETURN (990: learning
-# stops at the first evaluation of it, as in the quick preset; "null" never), STUDENT_STEPS
-# (10000), RECIPE (dense), EVAL_EPISODES (10), TASK (cartpole-balance), and COLLECT_SET and
-# DISTIL_SET: space-separated KEY=VALUE settings passed on as --set (e.g.
-# DISTIL_SET="frame_steps=20000"), COMPILE (on: both stages' updates compiled, with CUDA
-# graphs, on a CUDA device; off at tiny size, where compiling takes minutes for updates that
-# take seconds). PRESET=tiny DEVICE=cpu runs it at test sizes in seconds (the preset's own
-# frames; tests/test_gpu_script.py does).
+# stops at the first evaluation of it, as in the quick preset; "null": never), STUDENT_STEPS
+# (10000), RECIPE (dense), EVAL_EPISODES (10), TASK (cartpole-balance), COMPILE (on: both
+# stages' updates compiled, with CUDA graphs, on a CUDA device; off at tiny size, where
+# compiling takes minutes for updates that take seconds), and COLLECT_SET and DISTIL_SET:
+# space-separated KEY=VALUE settings passed on as --set (e.g. DISTIL_SET=frame_steps=20000).
+# PRESET=tiny DEVICE=cpu runs it at test sizes in seconds (the preset's own frames;
+# tests/test_gpu_script.py does).
 #
-# On a machine that cannot reach a package index but has a CUDA torch, install the wheels
-# that scripts/offline_bundle.sh gathered elsewhere (scripts/offline_install.sh) first. The frame budget is a
-# plan for a 25-minute lease: each stage's rate, measured at paper sizes on an H200, adds up
-# to ~19 minutes there plus the dense recipe's single-frame stage (docs/performance.md), but
-# the whole has not run on a GPU: the first run's timings.json is the measurement.
+# On a machine that cannot reach a package index but has a CUDA torch, first install the
+# wheels that scripts/offline_bundle.py gathered elsewhere (scripts/offline_install.sh).
+#
+# The frame budget is a plan for a 25-minute lease: each stage's rate, measured at paper sizes
+# on an H200, adds up to ~19 minutes there plus the dense recipe's single-frame stage
+# (docs/performance.md), but the whole has not run on a GPU: the first run's timings.json is
+# the measurement.
 set -euo pipefail
 if command -v twist-collect >/dev/null 2>&1; then
   # Already installed (an active environment, or a GPU image with the package on PATH):
