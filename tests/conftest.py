@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -58,6 +60,14 @@ def board_events(run: Path) -> tuple[dict[str, list[tuple[int, float]]],
     images = {t: [(e.step, (e.height, e.width)) for e in events.Images(t)]
               for t in tags["images"]}
     return scalars, images
+
+
+def load_script(path: Path) -> ModuleType:
+    """The Python script at ``path`` imported as a module (its ``main`` not run)."""
+    spec = importlib.util.spec_from_file_location(f"script_{path.stem}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def run_script(script: str, out: Path, **settings: str) -> subprocess.CompletedProcess[str]:

@@ -3,24 +3,17 @@ out, and the slimming of a bundled wheel."""
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 import zipfile
 from importlib import metadata
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 
+from tests.conftest import load_script
+
 SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
-
-
-def load(name: str) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(f"script_{name}", SCRIPTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def fake_distribution(site: Path, name: str, requires: list[str]) -> None:
@@ -33,7 +26,7 @@ def fake_distribution(site: Path, name: str, requires: list[str]) -> None:
 
 def test_the_check_names_a_missing_package_and_a_rejected_version_only(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    check = load("check_requirements")
+    check = load_script(SCRIPTS / "check_requirements.py")
     fake_distribution(tmp_path, "needy", [
         "numpy<1", "absent-package>=2", "needy-dependency",
         "dev-only-package; extra == 'dev'", "windows-only-package; sys_platform == 'win32'"])
@@ -55,7 +48,7 @@ def test_the_installed_package_has_everything_it_needs() -> None:
 
 
 def test_a_slimmed_wheel_loses_the_unused_folders_and_their_record_lines(tmp_path: Path) -> None:
-    bundle = load("offline_bundle")
+    bundle = load_script(SCRIPTS / "offline_bundle.py")
     wheel = tmp_path / "pkg-1.0-py3-none-any.whl"
     kept = {"pkg/__init__.py": b"x = 1\n", "pkg/suite/cartpole.xml": b"<mujoco/>"}
     dropped = {"pkg/locomotion/a.py": b"", "pkg/suite/dog_assets/mesh.stl": b"\0" * 100}

@@ -1,10 +1,11 @@
 """Every benchmark and experiment script still imports against the library and has a
 documented entry point, so that none rots while the library changes."""
 
-import importlib.util
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import load_script
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPTS = sorted([*(ROOT / "benchmarks").glob("*.py"), *(ROOT / "experiments").glob("*.py")])
@@ -16,9 +17,7 @@ def test_the_folders_hold_scripts() -> None:
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_script_imports_and_documents_its_command(script: Path) -> None:
-    spec = importlib.util.spec_from_file_location(f"script_{script.stem}", script)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script(script)
     assert callable(getattr(module, "main", None)), f"{script.name} has no main()"
     doc = module.__doc__ or ""
     assert doc.strip(), f"{script.name} has no docstring"

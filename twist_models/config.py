@@ -450,10 +450,9 @@ def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
     teacher's state if ``state_head``, reading the state as ``readout`` pairs it if given."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
-    cnn = dataclasses.replace(PRESETS[name].get("cnn", CNNConfig()), image_size=image_size,
-                              norm=norm)
-    if depth is not None:
-        cnn = dataclasses.replace(cnn, depth=depth)
+    cnn = PRESETS[name].get("cnn", CNNConfig())
+    cnn = dataclasses.replace(cnn, image_size=image_size, norm=norm,
+                              depth=cnn.depth if depth is None else depth)
     return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,
                          cnn=cnn, frames=frames,
                          state_dim=teacher.world_model.state_dim if state_head else 0,
