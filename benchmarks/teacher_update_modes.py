@@ -14,7 +14,13 @@ copy of the same initial weights:
   computes bfloat16 natively);
 * ``compiled``: the whole update as the collector compiles it (``--set compile=on``,
   ``Dreamer.compile_update``);
-* ``compiled_bf16``: both.
+* ``compiled_bf16``: both;
+* ``compiled_steps_bf16``: ``bf16`` with only the RSSM's one-step functions compiled
+  (``img_step``, ``post_step``, the prior head) and the loops left eager: small graphs that
+  compile in well under a minute (an alternative measured here, not in the library);
+* ``bf16_world_model``: ``bf16`` with the world model's loss in bfloat16 autocast too (an
+  alternative measured here, not in the library: the collector keeps the world model in
+  float32).
 
 A compiled variant's first two calls are reported apart (``<name>_compile_s``): they compile,
 and nothing else in a run costs as much once. Point ``TORCHINDUCTOR_CACHE_DIR`` at an empty
@@ -41,10 +47,31 @@ from collections.abc import Callable
 import torch
 
 from twist_data.tasks import TaskEnv
+from twist_models.rssm import State
 from twist_models.stages.collect import COLLECT_PRESETS, collect_preset
 from twist_models.teacher import Teacher
 
-VARIANTS = ("eager", "bf16", "compiled", "compiled_bf16")
+VARIANTS = ("eager", "bf16", "compiled", "compiled_bf16", "compiled_steps_bf16",
+            "bf16_world_model")
+
+
+def compile_steps(teacher: Teacher) -> None:
+    """Compile the RSSM's one-step functions of ``teacher``, leaving its loops eager."""
+    rssm = teacher.world_model.rssm
+    for name in ("img_step", "post_step", "_prior"):
+        setattr(rssm, name, torch.compile(getattr(rssm, name)))
+
+
+def bfloat16_world_model(teacher: Teacher) -> None:
+    """Run ``teacher``'s world-model loss under bfloat16 autocast (its backward follows)."""
+    loss = teacher.world_model.loss
+
+    def autocast_loss(batch: dict[str, torch.Tensor]
+                      ) -> tuple[torch.Tensor, State, dict[str, torch.Tensor]]:
+        with torch.autocast(batch["state"].device.type, dtype=torch.bfloat16):
+            return loss(batch)
+
+    teacher._model_loss = autocast_loss
 
 
 def collector_batch(batch: int, length: int, state_dim: int, action_dim: int,
@@ -103,7 +130,11 @@ def main() -> None:
         if "bf16" in name:
             teacher.actor_critic.config = dataclasses.replace(config.actor_critic,
                                                               precision="bfloat16")
-        if name.startswith("compiled"):
+        if name == "compiled_steps_bf16":
+            compile_steps(teacher)
+        elif name == "bf16_world_model":
+            bfloat16_world_model(teacher)
+        elif name.startswith("compiled"):
             teacher.compile_update(mode)
         start = time.perf_counter()
         teacher.train_step(batch)  # compiles (and records CUDA graphs on the second call)
