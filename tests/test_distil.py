@@ -379,6 +379,10 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
             "--teacher", str(teacher), "--set", "encoder_norm=batch", "--out", str(tmp_path / "i")],
         "encoder_depth must be a positive number of channels or null, got 0": [
             "--teacher", str(teacher), "--set", "encoder_depth=0", "--out", str(tmp_path / "k")],
+        "encoder_layers must be 1 to 4 convolutions or null, got 5": [
+            "--teacher", str(teacher), "--set", "encoder_layers=5", "--out", str(tmp_path / "l")],
+        "encoder_pool must be one of flatten, keypoints, got 'mean'": [
+            "--teacher", str(teacher), "--set", "encoder_pool=mean", "--out", str(tmp_path / "m")],
         "rare_states must be >= 0, got -1": ["--teacher", str(teacher), "--set",
                                              "rare_states=-1", "--out", str(tmp_path / "j")],
         "KEY one of": ["--teacher", str(teacher), "--set", "nope=1", "--out",
@@ -484,18 +488,23 @@ def test_frozen_dynamics_train_only_the_encoder_and_posterior(distil_inputs, tmp
         distil_preset("tiny", freeze_dynamics=True, copy_dynamics=False)
 
 
-def test_a_student_encoder_of_a_chosen_width_is_trained_saved_and_reloaded(
+def test_a_student_encoder_of_a_chosen_shape_is_trained_saved_and_reloaded(
         distil_inputs, tmp_path) -> None:
     dataset, teacher_path = distil_inputs
-    widths = {}
-    for depth in (None, 6):
-        summary = distil(dataset, tmp_path / str(depth),
-                         distil_preset("tiny", steps=2, encoder_depth=depth), teacher=teacher_path)
+    widths, features = {}, {}
+    shapes = {"preset": {}, "narrow": {"encoder_depth": 6},
+              "keypoints": {"encoder_layers": 3, "encoder_pool": "keypoints"}}
+    for name, settings in shapes.items():
+        summary = distil(dataset, tmp_path / name, distil_preset("tiny", steps=2, **settings),
+                         teacher=teacher_path)
         student = load_student(summary.student)[0]
         convolutions = [m for m in student.encoder.modules() if isinstance(m, torch.nn.Conv2d)]
-        widths[depth] = [c.out_channels for c in convolutions]
-    assert widths[None] == [4, 8, 16, 32]  # the tiny preset's depth 4, doubled at each layer
-    assert widths[6] == [6, 12, 24, 48]
+        widths[name] = [c.out_channels for c in convolutions]
+        features[name] = student.encoder.out_dim
+    assert widths["preset"] == [4, 8, 16, 32]  # the tiny preset's depth 4, doubled at each layer
+    assert widths["narrow"] == [6, 12, 24, 48]
+    assert widths["keypoints"] == [4, 8, 16] and features["keypoints"] == 2 * 16
+    assert features["preset"] == 32 * 2 * 2  # the last map flattened: 2 x 2 pixels
 
 
 def test_stacked_frames_repeat_at_episode_starts_and_agree_step_by_step() -> None:

@@ -85,6 +85,9 @@ class MLPConfig:
 
 
 CNN_NORMS = ("none", "layer")
+#: How the CNN's last feature map becomes a vector: ``flatten`` (DreamerV2) or ``keypoints``
+#: (each channel's softmax-weighted image position, as spatial-softmax encoders of robot state).
+CNN_POOLS = ("flatten", "keypoints")
 
 
 @dataclass(frozen=True)
@@ -103,12 +106,19 @@ class CNNConfig:
     """Normalisation between each encoder convolution and its activation: ``none``
     (DreamerV2's CNN) or ``layer`` (over each image's channels and pixels, as DreamerV3):
     under DR it learns thin features such as cartpole's pole many times faster."""
+    pool: str = "flatten"
+    """How the encoder's last feature map [C, H, W] becomes its output (:data:`CNN_POOLS`):
+    ``flatten``, all C*H*W values (DreamerV2), or ``keypoints``, each channel's expected
+    (x, y) under a softmax over its pixels, 2*C values in [-1, 1]."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder_kernels", tuple(self.encoder_kernels))
         object.__setattr__(self, "decoder_kernels", tuple(self.decoder_kernels))
         require_positive(self, "depth", "image_size")
         require_choice(self, "norm", CNN_NORMS)
+        require_choice(self, "pool", CNN_POOLS)
+        if not self.encoder_kernels:
+            raise ConfigError("encoder_kernels must name at least one convolution, got ()")
 
 
 ACTOR_GRADS = ("dynamics", "reinforce")
@@ -443,16 +453,19 @@ def image_dreamer_preset(name: str, state_dim: int, action_dim: int, image_size:
 def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
                    frames: int = 1, norm: str = "none", state_head: bool = False,
                    readout: ReadOutConfig | None = None,
-                   depth: int | None = None) -> StudentConfig:
+                   depth: int | None = None, layers: int | None = None,
+                   pool: str = "flatten") -> StudentConfig:
     """The student of size preset ``name`` (its CNN, normalised by ``norm``, ``depth``
-    channels wide if given) for ``teacher``,
+    channels wide and its first ``layers`` convolutions alone if given, its last map pooled
+    by ``pool``) for ``teacher``,
     whose RSSM it copies, reading ``frames`` images per step, with a read-out head of the
     teacher's state if ``state_head``, reading the state as ``readout`` pairs it if given."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
     cnn = PRESETS[name].get("cnn", CNNConfig())
-    cnn = dataclasses.replace(cnn, image_size=image_size, norm=norm,
-                              depth=cnn.depth if depth is None else depth)
+    cnn = dataclasses.replace(cnn, image_size=image_size, norm=norm, pool=pool,
+                              depth=cnn.depth if depth is None else depth,
+                              encoder_kernels=cnn.encoder_kernels[:layers])
     return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,
                          cnn=cnn, frames=frames,
                          state_dim=teacher.world_model.state_dim if state_head else 0,

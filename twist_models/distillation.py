@@ -26,6 +26,7 @@ from twist_data.errors import ConfigError
 from twist_data.sampler import SamplerConfig
 from twist_models.config import (
     CNN_NORMS,
+    CNN_POOLS,
     PRECISIONS,
     PRESETS,
     OptimConfig,
@@ -113,6 +114,13 @@ class DistilConfig:
     encoder_depth: int | None = None
     """Channels of the student CNN's first convolution (doubled at each layer); None: the
     size preset's (48 ``paper``, 24 ``quick``)."""
+    encoder_layers: int | None = None
+    """How many of the preset's convolutions the student CNN keeps, from the first (None: all
+    four, 64 -> 31 -> 14 -> 6 -> 2 pixels)."""
+    encoder_pool: str = "flatten"
+    """How the student CNN's last map becomes its features: ``flatten`` (the paper's) or
+    ``keypoints``, each channel's softmax-weighted position
+    (:class:`~twist_models.networks.Keypoints`; not in the paper)."""
     view: int | None = None
     """Camera view shown at every step; None: a random one of the K per step."""
     frame_post_weight: float = 0.0
@@ -237,6 +245,10 @@ class DistilConfig:
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
+        require_choice(self, "encoder_pool", CNN_POOLS)
+        if self.encoder_layers is not None and not 1 <= self.encoder_layers <= 4:
+            raise ConfigError(f"encoder_layers must be 1 to 4 convolutions or null, got "
+                              f"{self.encoder_layers}")
         if self.encoder_depth is not None and self.encoder_depth < 1:
             raise ConfigError(f"encoder_depth must be a positive number of channels or null, "
                               f"got {self.encoder_depth}")
