@@ -383,6 +383,12 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
             "--teacher", str(teacher), "--set", "encoder_layers=5", "--out", str(tmp_path / "l")],
         "encoder_pool must be one of flatten, keypoints, got 'mean'": [
             "--teacher", str(teacher), "--set", "encoder_pool=mean", "--out", str(tmp_path / "m")],
+        "encoder_first_stride must be 1 to 4 (the first kernel's side), got 5": [
+            "--teacher", str(teacher), "--set", "encoder_first_stride=5", "--out",
+            str(tmp_path / "n")],
+        "is too small for kernels (4, 4, 4, 4) with a first stride of 4": [
+            "--teacher", str(teacher), "--set", "encoder_first_stride=4", "--out",
+            str(tmp_path / "o")],
         "rare_states must be >= 0, got -1": ["--teacher", str(teacher), "--set",
                                              "rare_states=-1", "--out", str(tmp_path / "j")],
         "KEY one of": ["--teacher", str(teacher), "--set", "nope=1", "--out",
@@ -493,7 +499,8 @@ def test_a_student_encoder_of_a_chosen_shape_is_trained_saved_and_reloaded(
     dataset, teacher_path = distil_inputs
     widths, features = {}, {}
     shapes = {"preset": {}, "narrow": {"encoder_depth": 6},
-              "keypoints": {"encoder_layers": 3, "encoder_pool": "keypoints"}}
+              "keypoints": {"encoder_layers": 3, "encoder_pool": "keypoints"},
+              "patches": {"encoder_layers": 3, "encoder_first_stride": 4}}
     for name, settings in shapes.items():
         summary = distil(dataset, tmp_path / name, distil_preset("tiny", steps=2, **settings),
                          teacher=teacher_path)
@@ -505,6 +512,9 @@ def test_a_student_encoder_of_a_chosen_shape_is_trained_saved_and_reloaded(
     assert widths["narrow"] == [6, 12, 24, 48]
     assert widths["keypoints"] == [4, 8, 16] and features["keypoints"] == 2 * 16
     assert features["preset"] == 32 * 2 * 2  # the last map flattened: 2 x 2 pixels
+    strides = [c.stride for c in convolutions]  # the last student's: 4x4 patches first
+    assert widths["patches"] == [4, 8, 16] and strides == [(4, 4), (2, 2), (2, 2)]
+    assert features["patches"] == 16 * 2 * 2  # 64 -> 16 -> 7 -> 2
 
 
 def test_stacked_frames_repeat_at_episode_starts_and_agree_step_by_step() -> None:

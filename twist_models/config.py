@@ -106,6 +106,10 @@ class CNNConfig:
     """Normalisation between each encoder convolution and its activation: ``none``
     (DreamerV2's CNN) or ``layer`` (over each image's channels and pixels, as DreamerV3):
     under DR it learns thin features such as cartpole's pole many times faster."""
+    first_stride: int = 2
+    """Stride of the encoder's first convolution, at most its kernel's side: 2 (DreamerV2's,
+    overlapping windows) or, e.g., 4 (non-overlapping 4x4 patches, a map a quarter the size
+    for every layer after it)."""
     pool: str = "flatten"
     """How the encoder's last feature map [C, H, W] becomes its output (:data:`CNN_POOLS`):
     ``flatten``, all C*H*W values (DreamerV2), or ``keypoints``, each channel's expected
@@ -119,6 +123,25 @@ class CNNConfig:
         require_choice(self, "pool", CNN_POOLS)
         if not self.encoder_kernels:
             raise ConfigError("encoder_kernels must name at least one convolution, got ()")
+        if not 1 <= self.first_stride <= self.encoder_kernels[0]:
+            raise ConfigError(f"first_stride must be 1 to the first kernel's side "
+                              f"{self.encoder_kernels[0]}, got {self.first_stride}")
+        if self.encoder_map_sizes()[-1] < 1:
+            raise ConfigError(f"image size {self.image_size} is too small for kernels "
+                              f"{self.encoder_kernels} with a first stride of "
+                              f"{self.first_stride}: no pixel is left after the last")
+
+    def encoder_strides(self) -> tuple[int, ...]:
+        """Each encoder convolution's stride: ``first_stride``, then 2."""
+        return (self.first_stride,) + (2,) * (len(self.encoder_kernels) - 1)
+
+    def encoder_map_sizes(self) -> list[int]:
+        """The side of each encoder convolution's output map (valid convolutions)."""
+        sizes, size = [], self.image_size
+        for kernel, stride in zip(self.encoder_kernels, self.encoder_strides(), strict=True):
+            size = (size - kernel) // stride + 1
+            sizes.append(size)
+        return sizes
 
 
 ACTOR_GRADS = ("dynamics", "reinforce")
@@ -454,16 +477,17 @@ def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
                    frames: int = 1, norm: str = "none", state_head: bool = False,
                    readout: ReadOutConfig | None = None,
                    depth: int | None = None, layers: int | None = None,
-                   pool: str = "flatten") -> StudentConfig:
+                   pool: str = "flatten", first_stride: int = 2) -> StudentConfig:
     """The student of size preset ``name`` (its CNN, normalised by ``norm``, ``depth``
-    channels wide and its first ``layers`` convolutions alone if given, its last map pooled
-    by ``pool``) for ``teacher``,
+    channels wide and its first ``layers`` convolutions alone if given, the first of stride
+    ``first_stride``, its last map pooled by ``pool``) for ``teacher``,
     whose RSSM it copies, reading ``frames`` images per step, with a read-out head of the
     teacher's state if ``state_head``, reading the state as ``readout`` pairs it if given."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
     cnn = PRESETS[name].get("cnn", CNNConfig())
     cnn = dataclasses.replace(cnn, image_size=image_size, norm=norm, pool=pool,
+                              first_stride=first_stride,
                               depth=cnn.depth if depth is None else depth,
                               encoder_kernels=cnn.encoder_kernels[:layers])
     return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,

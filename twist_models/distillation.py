@@ -117,6 +117,9 @@ class DistilConfig:
     encoder_layers: int | None = None
     """How many of the preset's convolutions the student CNN keeps, from the first (None: all
     four, 64 -> 31 -> 14 -> 6 -> 2 pixels)."""
+    encoder_first_stride: int = 2
+    """Stride of the student CNN's first convolution (2: the paper's; 4: non-overlapping
+    4x4 patches, which leaves three convolutions room: ``encoder_layers=3``)."""
     encoder_pool: str = "flatten"
     """How the student CNN's last map becomes its features: ``flatten`` (the paper's) or
     ``keypoints``, each channel's softmax-weighted position
@@ -246,6 +249,9 @@ class DistilConfig:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
         require_choice(self, "encoder_pool", CNN_POOLS)
+        if not 1 <= self.encoder_first_stride <= 4:
+            raise ConfigError(f"encoder_first_stride must be 1 to 4 (the first kernel's side), "
+                              f"got {self.encoder_first_stride}")
         if self.encoder_layers is not None and not 1 <= self.encoder_layers <= 4:
             raise ConfigError(f"encoder_layers must be 1 to 4 convolutions or null, got "
                               f"{self.encoder_layers}")

@@ -72,10 +72,6 @@ class StateEncoder(MLP):
         self.out_dim = config.units
 
 
-def _conv_out(size: int, kernel: int) -> int:
-    return (size - kernel) // 2 + 1
-
-
 class Keypoints(nn.Module):
     """Spatial softmax: a feature map [N, C, H, W] -> [N, 2C], each channel's expected (x, y)
     in [-1, 1] under a softmax over its pixels at a learned temperature. Where a flattened map
@@ -104,17 +100,16 @@ class ImageEncoder(nn.Module):
     def __init__(self, config: CNNConfig) -> None:
         super().__init__()
         layers: list[nn.Module] = []
-        channels, size = 3, config.image_size
-        for i, kernel in enumerate(config.encoder_kernels):
+        channels = 3
+        for i, (kernel, stride) in enumerate(zip(config.encoder_kernels,
+                                                 config.encoder_strides(), strict=True)):
             out = config.depth * 2**i
-            layers.append(nn.Conv2d(channels, out, kernel, stride=2))
+            layers.append(nn.Conv2d(channels, out, kernel, stride=stride))
             if config.norm == "layer":  # one group: normalised over channels and pixels
                 layers.append(nn.GroupNorm(1, out))
             layers.append(nn.ELU())
-            channels, size = out, _conv_out(size, kernel)
-        if size < 1:
-            raise ValueError(f"image size {config.image_size} is too small for kernels "
-                             f"{config.encoder_kernels}")
+            channels = out
+        size = config.encoder_map_sizes()[-1]
         self.net = nn.Sequential(*layers)
         self.image_size = config.image_size
         if config.pool == "keypoints":

@@ -178,7 +178,8 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
                                                           config.readout_lean)
                                     if rows is not None else None,
                                     depth=config.encoder_depth,
-                                    layers=config.encoder_layers, pool=config.encoder_pool)
+                                    layers=config.encoder_layers, pool=config.encoder_pool,
+                                    first_stride=config.encoder_first_stride)
     student_config = _check_output(out, config, student_config, resume)
     rank, world = _rank_and_world()
     run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,
