@@ -29,6 +29,7 @@ from twist_models.config import (
     CNN_POOLS,
     PRECISIONS,
     PRESETS,
+    CNNConfig,
     OptimConfig,
     replace_fields,
     require_choice,
@@ -249,12 +250,14 @@ class DistilConfig:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
         require_choice(self, "encoder_pool", CNN_POOLS)
-        if not 1 <= self.encoder_first_stride <= 4:
-            raise ConfigError(f"encoder_first_stride must be 1 to 4 (the first kernel's side), "
-                              f"got {self.encoder_first_stride}")
-        if self.encoder_layers is not None and not 1 <= self.encoder_layers <= 4:
-            raise ConfigError(f"encoder_layers must be 1 to 4 convolutions or null, got "
-                              f"{self.encoder_layers}")
+        # Checked against the size preset's CNN here, so that the messages name these fields.
+        kernels = PRESETS[self.student].get("cnn", CNNConfig()).encoder_kernels
+        if not 1 <= self.encoder_first_stride <= kernels[0]:
+            raise ConfigError(f"encoder_first_stride must be 1 to {kernels[0]} (the first "
+                              f"kernel's side), got {self.encoder_first_stride}")
+        if self.encoder_layers is not None and not 1 <= self.encoder_layers <= len(kernels):
+            raise ConfigError(f"encoder_layers must be 1 to {len(kernels)} convolutions or null, "
+                              f"got {self.encoder_layers}")
         if self.encoder_depth is not None and self.encoder_depth < 1:
             raise ConfigError(f"encoder_depth must be a positive number of channels or null, "
                               f"got {self.encoder_depth}")
