@@ -12,9 +12,13 @@ copy of the same initial weights:
 * ``bf16``: imagination and the actor-critic in bfloat16 autocast
   (``--set imagination_precision=bfloat16``; the ``quick`` preset's ``auto`` where the CPU
   computes bfloat16 natively);
-* ``compiled``: the whole update as the collector compiles it (``--set compile=on``,
-  ``Dreamer.compile_update``);
+* ``compiled``: the world-model loss and the imagined rollout each compiled whole
+  (``Dreamer.compile_update(whole=True)``, as the collector compiles on a CUDA device);
 * ``compiled_bf16``: both;
+* ``pieces``: the loops compiled in pieces, the filter a few steps at a time
+  (``Dreamer.compile_update(whole=False)``, as the collector compiles on a CPU with
+  ``--set compile=on``);
+* ``pieces_bf16``: pieces with ``bf16``;
 * ``compiled_steps_bf16``: ``bf16`` with only the RSSM's one-step functions compiled
   (``img_step``, ``post_step``, the prior head) and the loops left eager: small graphs that
   compile in well under a minute (an alternative measured here, not in the library);
@@ -30,7 +34,7 @@ variant's speed-up over ``eager``, and ``break_even_updates`` is the compile tim
 seconds a compiled update saves. Prints one JSON line.
 
     python benchmarks/teacher_update_modes.py [--preset quick] [--task cartpole-balance]
-        [--variants eager,bf16,compiled,compiled_bf16] [--rounds 9] [--device cpu]
+        [--variants eager,bf16,compiled,compiled_bf16,pieces_bf16] [--rounds 9] [--device cpu]
 """
 
 from __future__ import annotations
@@ -52,7 +56,7 @@ from twist_models.stages.collect import COLLECT_PRESETS, collect_preset
 from twist_models.teacher import Teacher
 
 VARIANTS = ("eager", "bf16", "compiled", "compiled_bf16", "compiled_steps_bf16",
-            "bf16_world_model")
+            "bf16_world_model", "pieces", "pieces_bf16")
 
 
 def compile_steps(teacher: Teacher) -> None:
@@ -132,14 +136,16 @@ def main() -> None:
                                                               precision="bfloat16")
         if name == "compiled_steps_bf16":
             compile_steps(teacher)
+        elif name.startswith("pieces"):
+            teacher.compile_update(mode, whole=False)
         elif name == "bf16_world_model":
             bfloat16_world_model(teacher)
         elif name.startswith("compiled"):
-            teacher.compile_update(mode)
+            teacher.compile_update(mode, whole=True)
         start = time.perf_counter()
         teacher.train_step(batch)  # compiles (and records CUDA graphs on the second call)
         teacher.train_step(batch)
-        if name.startswith("compiled"):
+        if name.startswith(("compiled", "pieces")):
             compile_s[name] = round(time.perf_counter() - start, 1)
         teachers[name] = teacher
     samples: dict[str, list[float]] = {name: [] for name in names}

@@ -258,6 +258,35 @@ def test_observe_resets_the_state_where_is_first() -> None:
     assert not torch.allclose(post["deter"][1, 4], alone["deter"][1, 0])  # no reset in row 1
 
 
+def test_a_filter_run_in_pieces_is_the_step_by_step_filter() -> None:
+    """``RSSM.compile_filter(chunk, None)``: the filter run 3 steps at a time (8 steps: pieces
+    of 3, 3 and 2, an episode starting inside the second) carries its state across pieces, so
+    posterior and prior equal the one loop's, values and gradients, for the same draws; a
+    piece of no steps is refused."""
+    torch.manual_seed(0)
+    wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
+    batch = _batch(b=3, t=8)
+    batch["is_first"][1, 4] = True
+    uniform = torch.rand(3, 8, wm.config.rssm.stoch, 1)
+    runs = []
+    for chunk in (None, 3):
+        wm.rssm.compile_filter(chunk, None)
+        wm.zero_grad()
+        post, prior = wm.rssm.observe(wm.embed(batch["state"]), batch["action"],
+                                      batch["is_first"], uniform=uniform)
+        (post["deter"].square().mean() + prior["logits"].logsumexp(-1).mean()).backward()
+        runs.append((post, prior, [p.grad.clone() for p in wm.rssm.parameters()]))
+    (post, prior, grads), (post_3, prior_3, grads_3) = runs
+    for key in post:
+        assert post_3[key].shape == post[key].shape == (3, 8, *post[key].shape[2:])
+        torch.testing.assert_close(post_3[key], post[key], rtol=0, atol=0)
+        torch.testing.assert_close(prior_3[key], prior[key], rtol=0, atol=0)
+    for grad, grad_3 in zip(grads, grads_3, strict=True):
+        torch.testing.assert_close(grad_3, grad)
+    with pytest.raises(ConfigError, match=r"^a filter piece must be at least 1 step, got 0$"):
+        wm.rssm.compile_filter(0)
+
+
 def test_imagine_with_given_actions_is_deterministic_given_the_noise() -> None:
     wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
     start = wm.rssm.initial(6)
@@ -532,13 +561,16 @@ DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("whole", [False, True])
 @pytest.mark.parametrize("device", DEVICES)
-def test_the_compiled_teacher_update_gives_the_eager_metrics_and_weights(device: str) -> None:
+def test_the_compiled_teacher_update_gives_the_eager_metrics_and_weights(device: str,
+                                                                        whole: bool) -> None:
     """``Dreamer.compile_update``: a whole teacher update (world model, imagination,
-    actor and critic steps) gives eager's metrics and weights for the same batch and draws
-    (inductor drawing its random numbers as eager does), for two updates in a row, so CUDA
-    graphs replay once; on a GPU the actor-critic's part to a looser bound (below). Slow:
-    the first compiled update compiles for minutes on a CPU."""
+    actor and critic steps), its loops compiled whole or in pieces, gives eager's metrics and
+    weights for the same batch and draws (inductor drawing its random numbers as eager
+    does), for two updates in a row, so CUDA graphs replay once; on a GPU the actor-critic's
+    part to a looser bound (below). Slow: the first compiled update compiles for minutes on
+    a CPU."""
     import copy
 
     import torch._inductor.config as inductor
@@ -548,7 +580,7 @@ def test_the_compiled_teacher_update_gives_the_eager_metrics_and_weights(device:
     torch.manual_seed(0)
     eager = Teacher(teacher_preset("tiny", 5, 2)).to_device(device)
     twin = copy.deepcopy(eager)
-    twin.compile_update(compile_mode("on", torch.device(device)))
+    twin.compile_update(compile_mode("on", torch.device(device)), whole)
     before = [p.detach().cpu().clone() for p in eager.parameters()]
     batch = {k: v.to(device) for k, v in _batch(b=4, t=8, s=5, a=2).items()}
     results = []

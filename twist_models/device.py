@@ -40,9 +40,12 @@ def compile_mode(setting: str, device: torch.device) -> str | None:
     for eager. On CUDA the updates are chains of small kernels (a 50-step filter, a 15-step
     imagination) bound by launches, so the compiled graphs are also captured as CUDA graphs
     (``reduce-overhead``): the paper-sized world-model update ran 11x faster on an H200
-    (docs/performance.md). On a 2-core CPU the `quick` collector's compiled update ran 1.5x
-    eager, but only after 8 minutes of compiling, which its 5,625 updates barely repay, so
-    ``auto`` stays eager there (``benchmarks/teacher_update_modes.py``)."""
+    (docs/performance.md). On a CPU the updates' loops are compiled in pieces
+    (:meth:`~twist_models.dreamer.Dreamer.compile_update`): on 2 cores the `quick`
+    collector's update then ran 1.59x eager float32 (1.35x the eager bfloat16 update it
+    replaces) after ~3 minutes of compiling, about 3 minutes of the main job's ~56 net, so
+    ``auto`` stays eager there, the arithmetic every measured teacher learned with
+    (``benchmarks/teacher_update_modes.py``)."""
     if setting not in COMPILE_SETTINGS:
         raise ConfigError(f"unknown compile setting {setting!r}; valid: "
                           f"{', '.join(COMPILE_SETTINGS)}")

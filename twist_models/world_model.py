@@ -43,6 +43,12 @@ class WorldModel(nn.Module):
             self.register_buffer("state_seen", seen, persistent=False)
         else:
             self.state_seen = None
+        self.compile_overshoot(None)
+
+    def compile_overshoot(self, mode: str | None) -> None:
+        """Run the overshooting loss through ``torch.compile`` in ``mode`` (None: eager)."""
+        self._overshoot_fn = (self._overshoot_loss if mode is None
+                              else torch.compile(self._overshoot_loss, mode=mode))
 
     @property
     def obs_key(self) -> str:
@@ -83,7 +89,7 @@ class WorldModel(nn.Module):
             loss = loss + discount
             metrics["discount_loss"] = discount.detach()
         if c.overshoot:
-            overshoot = self._overshoot_loss(post, batch)
+            overshoot = self._overshoot_fn(post, batch)
             loss = loss + overshoot
             metrics["overshoot_loss"] = overshoot.detach()
         metrics["model_loss"] = loss.detach()

@@ -221,8 +221,8 @@ class CollectConfig:
     it from that preset (:meth:`with_settings`). The override fields above apply on top."""
     compile: str = "auto"
     """Teacher updates through ``torch.compile`` (``auto``: with CUDA graphs on a CUDA device,
-    eager on a CPU, where it did not pay; ``on``; ``off``: eager, the reference;
-    :func:`~twist_models.device.compile_mode`)."""
+    eager on a CPU, where it saves too little; ``on``: on a CPU the loops in pieces;
+    ``off``: eager, the reference; :func:`~twist_models.device.compile_mode`)."""
 
     def __post_init__(self) -> None:
         task_spec(self.task)  # raises UnknownTaskError naming the valid tasks
