@@ -43,9 +43,10 @@ def compile_mode(setting: str, device: torch.device) -> str | None:
     (docs/performance.md). On a CPU the updates' loops are compiled in pieces
     (:meth:`~twist_models.dreamer.Dreamer.compile_update`): on 2 cores the `quick`
     collector's update then ran 1.59x eager float32 (1.35x the eager bfloat16 update it
-    replaces) after ~3 minutes of compiling, about 3 minutes of the main job's ~56 net, so
+    replaces) after ~3 minutes of compiling, and a collection learned 15% sooner; but its
+    teacher, another draw of the random numbers, learned for longer before it stopped, so
     ``auto`` stays eager there, the arithmetic every measured teacher learned with
-    (``benchmarks/teacher_update_modes.py``)."""
+    (``benchmarks/teacher_update_modes.py``; docs/experiments.md)."""
     if setting not in COMPILE_SETTINGS:
         raise ConfigError(f"unknown compile setting {setting!r}; valid: "
                           f"{', '.join(COMPILE_SETTINGS)}")
