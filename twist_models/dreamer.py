@@ -44,7 +44,7 @@ class Dreamer(nn.Module):
         the loops are compiled in pieces: the filter :data:`FILTER_CHUNK` steps at a time,
         the overshooting rollout and the imagined rollout, the networks between them eager.
         On a 2-core CPU the pieces compile in about 3 minutes instead of 6-8 and run the
-        `quick` update at ~0.93 of the whole graph's speed (docs/performance.md). The
+        `quick` update at ~0.94 of the whole graph's speed (docs/performance.md). The
         optimiser steps and the actor-critic's return and loss arithmetic (a few large
         kernels) stay eager either way."""
         whole = mode == "reduce-overhead" if whole is None else whole
