@@ -17,14 +17,20 @@ Prints one JSON line per part.
 ``--compile`` adds, on copies of the same weights: the teacher's world-model update with its
 loss (forward, and through it the backward) in ``torch.compile``; the teacher's whole update
 as the collector compiles it (``Dreamer.compile_update``); the student update with its loss
-compiled. Each variant's first two calls are reported apart (``<name>_compile_s``) and
-``<name>_speedup`` is the eager median over the compiled one, both from the same run; a
-compiler failure is reported as ``<name>_error``. ``--compile-mode reduce-overhead`` adds
+compiled whole, and in pieces (``student_pieces_s``: the filter run ``FILTER_CHUNK`` steps at
+a time through ``RSSM.compile_filter``, the CNN eager, as ``twist-distil --set compile=true``
+runs on a CPU: ``twist_models.distillation.compiled_objective``). ``--precision bfloat16``
+runs the student's CNN under bfloat16 autocast in every variant, eager included, as the
+``dense`` and ``readout`` recipes do where the device computes bfloat16 natively. Each
+variant's first two calls are reported apart (``<name>_compile_s``) and ``<name>_speedup``
+is the eager median over the compiled one, both from the same run; a compiler failure is
+reported as ``<name>_error``. ``--compile-mode reduce-overhead`` adds
 CUDA graphs on a GPU.
 
     python benchmarks/world_model_update.py [--part teacher|student|all] [--preset paper]
         [--repeats 5] [--device cpu|cuda] [--imag-starts N] [--compile]
         [--compile-mode default|reduce-overhead|max-autotune-no-cudagraphs]
+        [--precision float32|bfloat16]
 """
 
 from __future__ import annotations
@@ -44,6 +50,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from twist_models.config import PRESETS, RSSMConfig, WorldModelConfig, teacher_preset
+from twist_models.device import precision_autocast
+from twist_models.dreamer import FILTER_CHUNK
 from twist_models.losses import categorical_kl
 from twist_models.networks import MLP
 from twist_models.teacher import Teacher
@@ -234,7 +242,8 @@ def bench_teacher(preset: str, repeats: int, device: torch.device,
 
 def bench_student(preset: str, repeats: int, device: torch.device,
                   imag_starts: int | None = None, compile_too: bool = False,
-                  compile_mode: str = "default") -> dict[str, object]:
+                  compile_mode: str = "default", precision: str = "float32"
+                  ) -> dict[str, object]:
     torch.manual_seed(0)
     base = teacher_preset(preset, STATE, ACTIONS).world_model
     config = WorldModelConfig(obs="image", state_dim=STATE, action_dim=ACTIONS, rssm=base.rssm,
@@ -249,8 +258,9 @@ def bench_student(preset: str, repeats: int, device: torch.device,
               "prior": torch.randn(B, L, r.stoch, r.classes, device=device)}
 
     def student_loss(model: WorldModel) -> torch.Tensor:
-        post, prior = model.rssm.observe(model.embed(batch["image"]), batch["action"],
-                                         batch["is_first"])
+        with precision_autocast(precision, device):  # the CNN only, as the recipes run it
+            features = model.embed(batch["image"]).float()
+        post, prior = model.rssm.observe(features, batch["action"], batch["is_first"])
         return matching_loss(post["deter"], post["logits"], prior["logits"], target)
 
     def student_update() -> None:
@@ -288,6 +298,20 @@ def bench_student(preset: str, repeats: int, device: torch.device,
 
         try_compiled(samples, extra, "student_compiled_s", student_compiled, repeats, device,
                      "student_update_s")
+        if compile_mode != "reduce-overhead":  # CUDA graphs want the whole graph
+            pieces = copy.deepcopy(student)
+            pieces_opt = torch.optim.AdamW([*pieces.encoder.parameters(),
+                                            *pieces.rssm.parameters()], config.model_lr, eps=1e-5)
+            pieces.rssm.compile_filter(FILTER_CHUNK, compile_mode)
+
+            def student_pieces() -> None:
+                loss = student_loss(pieces)
+                pieces_opt.zero_grad(set_to_none=True)
+                loss.backward()
+                pieces_opt.step()
+
+            try_compiled(samples, extra, "student_pieces_s", student_pieces, repeats, device,
+                         "student_update_s")
     medians = {k: statistics.median(v) for k, v in samples.items()}
     return {"samples": samples, "medians": medians, "figure": "student_update_s", **extra,
             "speedup_vs_naive": round(medians["naive_student_s"]
@@ -309,11 +333,14 @@ def main() -> None:
                         help="torch.compile's mode (reduce-overhead: CUDA graphs)")
     parser.add_argument("--whole-only", action="store_true",
                         help="of the teacher's compiled variants, only the whole update")
+    parser.add_argument("--precision", default="float32", choices=["float32", "bfloat16"],
+                        help="the student's CNN under bfloat16 autocast (every variant)")
     args = parser.parse_args()
     device = torch.device(args.device)
     parts = ["teacher", "student"] if args.part == "all" else [args.part]
     for part in parts:
-        options = {"whole_only": args.whole_only} if part == "teacher" else {}
+        options = ({"whole_only": args.whole_only} if part == "teacher"
+                   else {"precision": args.precision})
         result = {"teacher": bench_teacher, "student": bench_student}[part](
             args.preset, args.repeats, device, args.imag_starts, args.compile, args.compile_mode,
             **options)
@@ -331,6 +358,7 @@ def main() -> None:
             "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
             **{k: round(v, 4) for k, v in medians.items()}, **result,
             "compile_mode": args.compile_mode if args.compile else None,
+            "precision": args.precision if part == "student" else None,
             "judged": figure, "target_s": target, "meets_target": None if target is None
             else medians[figure] <= target,
             "samples": {k: [round(x, 4) for x in v] for k, v in samples.items()},

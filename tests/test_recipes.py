@@ -333,15 +333,42 @@ def test_bfloat16_autocast_changes_the_arithmetic_not_the_objective(
         assert not torch.equal(low.float(), student.encoder(batch["image"][:, :2]))
 
 
-@pytest.mark.slow
-def test_the_compiled_objective_gives_the_eager_loss_gradients_and_step(
+def test_compile_settings_pick_the_whole_objective_or_its_filters_in_pieces(
         inputs: tuple[Path, Path, Teacher]) -> None:
-    """``compile=true``: the same loss, gradients and optimiser step as eager, on the same
-    windows and (with inductor drawing its random numbers as eager does) the same draws.
-    Slow: the first compiled call compiles for minutes on a CPU."""
+    """:func:`compiled_objective` compiles nothing for eager, wraps the whole objective for
+    CUDA graphs, and on a CPU compiles the two filters in pieces and trains the objective
+    itself (nothing is compiled until a call, so this runs in a moment)."""
+    import copy
+
+    from twist_models.distillation import compiled_objective
+    from twist_models.dreamer import FILTER_CHUNK
+
+    teacher = copy.deepcopy(inputs[2])
+    student = Student(student_preset("tiny", teacher.config, 64))
+    objective = Distillation(student, teacher, distil_preset("tiny"))
+    assert compiled_objective(objective, None) is objective
+    whole = compiled_objective(objective, "reduce-overhead")
+    assert whole is not objective and whole._orig_mod is objective
+    for rssm in (student.rssm, teacher.world_model.rssm):
+        assert rssm._filter_chunk is None  # a whole graph leaves the filters alone
+    assert compiled_objective(objective, "default") is objective
+    for rssm in (student.rssm, teacher.world_model.rssm):
+        assert rssm._filter_chunk == FILTER_CHUNK and rssm._filter_fn is not rssm._filter
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("whole", [True, False], ids=["whole", "pieces"])
+def test_the_compiled_objective_gives_the_eager_loss_gradients_and_step(
+        inputs: tuple[Path, Path, Teacher], whole: bool) -> None:
+    """``compile=true`` (:func:`compiled_objective`, whole or its filters in pieces): the same
+    loss, gradients and optimiser step as eager, on the same windows and (with inductor
+    drawing its random numbers as eager does) the same draws. Slow: the first compiled call
+    compiles for minutes on a CPU."""
     import copy
 
     import torch._inductor.config as inductor
+
+    from twist_models.distillation import compiled_objective
 
     dataset, _, teacher = inputs
     data = open_dataset(dataset)
@@ -359,8 +386,12 @@ def test_the_compiled_objective_gives_the_eager_loss_gradients_and_step(
     twin = copy.deepcopy(eager)
     before = [p.detach().clone() for p in eager.parameters()]
     results = []
-    for student, wrap in ((eager, lambda m: m), (twin, torch.compile)):
-        objective = wrap(Distillation(student, teacher, config, targets.scale))
+    # The pieces compile the teacher's filter too: the twin's teacher is a copy, so that the
+    # fixture's stays eager.
+    for student, mentor, mode in ((eager, teacher, None), (twin, copy.deepcopy(teacher),
+                                                          "default")):
+        objective = compiled_objective(Distillation(student, mentor, config, targets.scale),
+                                       mode, whole)
         optimiser = torch.optim.Adam(student.parameters(), 1e-3)
         torch.manual_seed(7)
         with inductor.patch(fallback_random=True):

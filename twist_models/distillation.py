@@ -15,7 +15,7 @@ its config, recipes and size presets, and the held-out latent agreement: the bui
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -37,6 +37,7 @@ from twist_models.config import (
     require_positive,
 )
 from twist_models.device import precision_autocast
+from twist_models.dreamer import FILTER_CHUNK
 from twist_models.frame_targets import actor_sensitivity, frame_agreement, frame_terms
 from twist_models.losses import (
     action_matching_loss,
@@ -190,12 +191,13 @@ class DistilConfig:
     ``benchmarks/encoder_speed.py``), float32 elsewhere, where it would be slower."""
     compile: bool = False
     """Run the window objective (Eq. 3/4 and the terms beside them, forward and the backward
-    through it) through ``torch.compile``, on a CUDA device also captured as CUDA graphs;
-    the optimiser step and the held-out evaluation stay eager. Off by default: on a 2-core
-    CPU its first update compiles for ~5 minutes for a measured 1.8x per update at ``tiny``
-    sizes; on an H200 the benchmark's Eq. 3 update ran 14x faster compiled, and the ``dense``
-    recipe's whole window objective (Eq. 3, Eq. 4 and the per-frame terms) ran 49 updates/s
-    after ~4 minutes of compiling (docs/performance.md)."""
+    through it) through ``torch.compile`` (:func:`compiled_objective`): on a CUDA device whole
+    and captured as CUDA graphs, on a CPU its two filters in compiled pieces; the optimiser
+    step stays eager. Off by default: on a 2-core CPU the ``dense`` recipe's ``quick`` window
+    update ran 1.15x eager after a minute of compiling, while the whole single-frame stage
+    (most of a run) gains nothing; on an H200 the benchmark's Eq. 3 update ran 14x faster
+    compiled, and the ``dense`` recipe's whole window objective (Eq. 3, Eq. 4 and the
+    per-frame terms) ran 49 updates/s after ~4 minutes of compiling (docs/performance.md)."""
     lr: float = 3e-4
     """Adam learning rate of the student (DreamerV2's world-model rate)."""
     optim: OptimConfig = field(default_factory=OptimConfig)
@@ -497,6 +499,30 @@ class Distillation(nn.Module):
         s_states, _ = self.student.rssm.imagine(flat_s, c.horizon, actions=actions,
                                                 uniform=img_draws)
         return imagined_distillation_loss(s_states, t_states)
+
+
+def compiled_objective(objective: nn.Module, mode: str | None, whole: bool | None = None
+                       ) -> Callable[..., Any]:
+    """What to train with: ``objective`` (a :class:`Distillation`, or one wrapped in
+    DistributedDataParallel) compiled in ``mode`` (``reduce-overhead``: also captured as
+    CUDA graphs; None: ``objective`` itself, eager).
+
+    ``whole`` (default: with CUDA graphs only, which want the fewest launches) compiles the
+    whole objective as one graph. Otherwise the student's and the teacher's filters run
+    :data:`~twist_models.dreamer.FILTER_CHUNK` steps at a time through compiled pieces and
+    the networks between them eager: on a 2-core CPU the ``dense`` recipe's ``quick`` window
+    update (bfloat16 CNN) ran 1.15x eager after 51 s of compiling, the whole graph 1.22x after
+    366 s, repaid only after ~12,000 updates (docs/performance.md). The pieces live on the
+    models' RSSMs, so every filter of this student and this teacher runs them from here on,
+    the held-out evaluation's included (``RSSM.compile_filter(None)`` undoes it)."""
+    whole = mode == "reduce-overhead" if whole is None else whole
+    if mode is None or whole:
+        return objective if mode is None else torch.compile(objective, mode=mode)
+    distillation = objective.module if isinstance(
+        objective, nn.parallel.DistributedDataParallel) else objective
+    distillation.student.rssm.compile_filter(FILTER_CHUNK, mode)
+    distillation.teacher.world_model.rssm.compile_filter(FILTER_CHUNK, mode)
+    return objective
 
 
 @torch.no_grad()

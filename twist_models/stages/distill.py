@@ -68,6 +68,7 @@ from twist_models.distillation import (
     KEYS,
     DistilConfig,
     Distillation,
+    compiled_objective,
     frame_loss,
     latent_agreement,
 )
@@ -355,11 +356,10 @@ class _Run:
         if world > 1:
             self.objective = nn.parallel.DistributedDataParallel(
                 self.objective, device_ids=[device.index] if device.type == "cuda" else None)
-        # Compiled for training only: evaluation runs other shapes and would recompile.
+        # A whole graph is for training only: evaluation runs other shapes and would recompile.
         self.compiled_mode = compile_mode("on" if config.compile else "off", device)
-        self.train_objective: Callable[..., Any] = (
-            self.objective if self.compiled_mode is None
-            else torch.compile(self.objective, mode=self.compiled_mode))
+        self.train_objective: Callable[..., Any] = compiled_objective(self.objective,
+                                                                      self.compiled_mode)
         self.heldout = self._heldout_batch()
         self.heldout_last: dict[str, float] = {}
         self.board = Board(out) if self.writes else None
