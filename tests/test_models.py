@@ -614,6 +614,22 @@ def test_the_compiled_teacher_update_gives_the_eager_metrics_and_weights(device:
         assert max(v for (_, key), v in gaps.items() if key in behaviour) < 2e-2, gaps
 
 
+def test_the_automatic_precision_is_a_constant_to_the_compiler() -> None:
+    """``precision_autocast("auto", cpu)`` inside a compiled function traces as one graph: the
+    CPU's bfloat16 support is a constant. Queried while tracing, it broke the graph inside the
+    autocast block, and the compiled ``dense`` objective recompiled at every update. Dynamo's
+    tracing alone (backend ``eager``), so this runs in a moment."""
+    from twist_models.device import precision_autocast
+
+    def scaled(x: torch.Tensor) -> torch.Tensor:
+        with precision_autocast("auto", x.device):
+            return (x @ x).float() * 2
+
+    x = torch.randn(4, 4)
+    compiled = torch.compile(scaled, backend="eager", fullgraph=True)  # a break would raise
+    assert torch.equal(compiled(x), scaled(x))
+
+
 def test_bfloat16_imagination_changes_the_arithmetic_not_the_update() -> None:
     """``ActorCriticConfig.precision=bfloat16``: the imagined rollout and the actor-critic's
     networks run in bfloat16 autocast, while the weights, the latent logits, the actions and

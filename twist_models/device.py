@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import functools
 
 import torch
 
@@ -55,9 +54,11 @@ def compile_mode(setting: str, device: torch.device) -> str | None:
     return "reduce-overhead" if device.type == "cuda" else "default"
 
 
-@functools.cache
-def _cpu_has_bfloat16() -> bool:
-    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+# Read once: a plain constant to torch.compile. Queried inside a compiled objective, the call
+# broke the graph within the autocast block it decides, and the code resumed after the break
+# guarded on that block's context object, a new one at every call: the objective recompiled
+# at every update until dynamo gave up on it (docs/performance.md).
+_CPU_HAS_BFLOAT16 = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
 def resolve_precision(precision: str, device: torch.device) -> str:
@@ -68,7 +69,7 @@ def resolve_precision(precision: str, device: torch.device) -> str:
     if precision not in PRECISIONS:
         raise ConfigError(f"unknown precision {precision!r}; valid: {', '.join(PRECISIONS)}")
     if precision == "auto":
-        native = device.type == "cuda" or (device.type == "cpu" and _cpu_has_bfloat16())
+        native = device.type == "cuda" or (device.type == "cpu" and _CPU_HAS_BFLOAT16)
         return "bfloat16" if native else "float32"
     return precision
 
