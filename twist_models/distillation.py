@@ -194,7 +194,7 @@ class DistilConfig:
     through it) through ``torch.compile`` (:func:`compiled_objective`): on a CUDA device whole
     and captured as CUDA graphs, on a CPU its two filters in compiled pieces; the optimiser
     step stays eager. Off by default: on a 2-core CPU the ``dense`` recipe's ``quick`` window
-    update ran 1.15x eager after a minute of compiling, while the whole single-frame stage
+    update ran 1.16x eager after a minute of compiling, while the whole single-frame stage
     (most of a run) gains nothing; on an H200 the benchmark's Eq. 3 update ran 14x faster
     compiled, and the ``dense`` recipe's whole window objective (Eq. 3, Eq. 4 and the
     per-frame terms) ran 49 updates/s after ~4 minutes of compiling (docs/performance.md)."""
@@ -511,8 +511,9 @@ def compiled_objective(objective: nn.Module, mode: str | None, whole: bool | Non
     whole objective as one graph. Otherwise the student's and the teacher's filters run
     :data:`~twist_models.dreamer.FILTER_CHUNK` steps at a time through compiled pieces and
     the networks between them eager: on a 2-core CPU the ``dense`` recipe's ``quick`` window
-    update (bfloat16 CNN) ran 1.15x eager after 51 s of compiling, the whole graph 1.22x after
-    366 s, repaid only after ~12,000 updates (docs/performance.md). The pieces live on the
+    update (bfloat16 CNN) ran 1.16x eager after 54 s of compiling, the whole graph 1.23x after
+    352 s, whose extra compiling is repaid only after ~10,000 updates
+    (``benchmarks/distil_compile.py``; docs/performance.md). The pieces live on the
     models' RSSMs, so every filter of this student and this teacher runs them from here on,
     the held-out evaluation's included (``RSSM.compile_filter(None)`` undoes it)."""
     whole = mode == "reduce-overhead" if whole is None else whole
