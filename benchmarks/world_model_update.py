@@ -249,8 +249,6 @@ def bench_student(preset: str, repeats: int, device: torch.device,
     config = WorldModelConfig(obs="image", state_dim=STATE, action_dim=ACTIONS, rssm=base.rssm,
                               cnn=base.cnn, head=base.head)
     student = WorldModel(config).to(device)
-    params = [*student.encoder.parameters(), *student.rssm.parameters()]
-    optimiser = torch.optim.AdamW(params, config.model_lr, eps=1e-5)
     batch = sequence_batch(device, image=True)
     r = config.rssm
     target = {"deter": torch.randn(B, L, r.deter, device=device),
@@ -263,11 +261,22 @@ def bench_student(preset: str, repeats: int, device: torch.device,
         post, prior = model.rssm.observe(features, batch["action"], batch["is_first"])
         return matching_loss(post["deter"], post["logits"], prior["logits"], target)
 
-    def student_update() -> None:
-        loss = student_loss(student)
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
+    def updater(model: WorldModel, loss_of: Callable[[WorldModel], torch.Tensor]
+                ) -> Callable[[], None]:
+        """One update of ``model``'s encoder and RSSM with an AdamW of its own."""
+        optimiser = torch.optim.AdamW([*model.encoder.parameters(), *model.rssm.parameters()],
+                                      config.model_lr, eps=1e-5)
+
+        def update() -> None:
+            torch.compiler.cudagraph_mark_step_begin()  # a no-op without CUDA graphs
+            loss = loss_of(model)
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+
+        return update
+
+    student_update = updater(student, student_loss)
 
     naive = NaiveSkeleton(r, naive_cnn(config.cnn.depth), student.encoder.out_dim).to(device)
     naive_opt = torch.optim.Adam(naive.parameters(), 3e-4)
@@ -284,32 +293,13 @@ def bench_student(preset: str, repeats: int, device: torch.device,
                "student_update_s": median_time(student_update, repeats, device)}
     extra: dict[str, object] = {}
     if compile_too:
-        twin = copy.deepcopy(student)
-        twin_opt = torch.optim.AdamW([*twin.encoder.parameters(), *twin.rssm.parameters()],
-                                     config.model_lr, eps=1e-5)
-        compiled_loss = torch.compile(student_loss, mode=compile_mode)
-
-        def student_compiled() -> None:
-            torch.compiler.cudagraph_mark_step_begin()
-            loss = compiled_loss(twin)
-            twin_opt.zero_grad(set_to_none=True)
-            loss.backward()
-            twin_opt.step()
-
-        try_compiled(samples, extra, "student_compiled_s", student_compiled, repeats, device,
-                     "student_update_s")
+        try_compiled(samples, extra, "student_compiled_s",
+                     updater(copy.deepcopy(student), torch.compile(student_loss, mode=compile_mode)),
+                     repeats, device, "student_update_s")
         if compile_mode != "reduce-overhead":  # CUDA graphs want the whole graph
             pieces = copy.deepcopy(student)
-            pieces_opt = torch.optim.AdamW([*pieces.encoder.parameters(),
-                                            *pieces.rssm.parameters()], config.model_lr, eps=1e-5)
             pieces.rssm.compile_filter(FILTER_CHUNK, compile_mode)
-
-            def student_pieces() -> None:
-                loss = student_loss(pieces)
-                pieces_opt.zero_grad(set_to_none=True)
-                loss.backward()
-                pieces_opt.step()
-
+            student_pieces = updater(pieces, student_loss)
             try_compiled(samples, extra, "student_pieces_s", student_pieces, repeats, device,
                          "student_update_s")
     medians = {k: statistics.median(v) for k, v in samples.items()}
