@@ -51,9 +51,9 @@ from torch.nn import functional as F
 
 from twist_models.config import PRESETS, RSSMConfig, WorldModelConfig, teacher_preset
 from twist_models.device import precision_autocast
-from twist_models.dreamer import FILTER_CHUNK
 from twist_models.losses import categorical_kl
 from twist_models.networks import MLP
+from twist_models.rssm import FILTER_CHUNK
 from twist_models.teacher import Teacher
 from twist_models.world_model import WorldModel
 

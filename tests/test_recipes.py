@@ -341,7 +341,7 @@ def test_compile_settings_pick_the_whole_objective_or_its_filters_in_pieces(
     import copy
 
     from twist_models.distillation import compiled_objective
-    from twist_models.dreamer import FILTER_CHUNK
+    from twist_models.rssm import FILTER_CHUNK
 
     teacher = copy.deepcopy(inputs[2])
     student = Student(student_preset("tiny", teacher.config, 64))

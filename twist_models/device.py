@@ -54,6 +54,14 @@ def compile_mode(setting: str, device: torch.device) -> str | None:
     return "reduce-overhead" if device.type == "cuda" else "default"
 
 
+def compiles_whole(mode: str | None, whole: bool | None) -> bool:
+    """Whether an update compiled in ``mode`` is compiled as whole graphs rather than its loops
+    in pieces: ``whole`` if given, else only for CUDA graphs (``reduce-overhead``), which want
+    the fewest launches; on a CPU pieces compile in a fraction of the time and ran about as
+    fast (docs/performance.md)."""
+    return mode == "reduce-overhead" if whole is None else whole
+
+
 # Read once: a plain constant to torch.compile. Queried inside a compiled objective, the call
 # broke the graph within the autocast block it decides, and the code resumed after the break
 # guarded on that block's context object, a new one at every call: the objective recompiled

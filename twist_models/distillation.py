@@ -36,8 +36,7 @@ from twist_models.config import (
     require_non_negative,
     require_positive,
 )
-from twist_models.device import precision_autocast
-from twist_models.dreamer import FILTER_CHUNK
+from twist_models.device import compiles_whole, precision_autocast
 from twist_models.frame_targets import actor_sensitivity, frame_agreement, frame_terms
 from twist_models.losses import (
     action_matching_loss,
@@ -46,6 +45,7 @@ from twist_models.losses import (
     imagined_distillation_loss,
 )
 from twist_models.readout import TYPICAL_SPREADS
+from twist_models.rssm import FILTER_CHUNK
 from twist_models.student import Student
 from twist_models.teacher import Teacher
 
@@ -509,14 +509,14 @@ def compiled_objective(objective: nn.Module, mode: str | None, whole: bool | Non
 
     ``whole`` (default: with CUDA graphs only, which want the fewest launches) compiles the
     whole objective as one graph. Otherwise the student's and the teacher's filters run
-    :data:`~twist_models.dreamer.FILTER_CHUNK` steps at a time through compiled pieces and
+    :data:`~twist_models.rssm.FILTER_CHUNK` steps at a time through compiled pieces and
     the networks between them eager: on a 2-core CPU the ``dense`` recipe's ``quick`` window
     update (bfloat16 CNN) ran 1.16x eager after 54 s of compiling, the whole graph 1.23x after
     352 s, whose extra compiling is repaid only after ~10,000 updates
     (``benchmarks/distil_compile.py``; docs/performance.md). The pieces live on the
     models' RSSMs, so every filter of this student and this teacher runs them from here on,
     the held-out evaluation's included (``RSSM.compile_filter(None)`` undoes it)."""
-    whole = mode == "reduce-overhead" if whole is None else whole
+    whole = compiles_whole(mode, whole)
     if mode is None or whole:
         return objective if mode is None else torch.compile(objective, mode=mode)
     distillation = objective.module if isinstance(

@@ -9,13 +9,9 @@ from torch import nn
 from twist_models.actor_critic import ActorCritic
 from twist_models.checkpoint import move_optimiser_state
 from twist_models.config import DreamerConfig
+from twist_models.device import compiles_whole
+from twist_models.rssm import FILTER_CHUNK
 from twist_models.world_model import WorldModel
-
-#: Filter steps per compiled piece (``compile_update(whole=False)``). Measured on the `quick`
-#: teacher's filter (B=32, 50 steps, forward and backward, 2-core AMD EPYC): eager 83 ms;
-#: pieces of 5 steps 34.7 ms after 40 s of compiling, of 10 steps 33.1 ms after 66 s, of 25
-#: 30.9 ms after 155 s; the 50 steps compiled unrolled 48.6 ms after 199 s.
-FILTER_CHUNK = 5
 
 
 class Dreamer(nn.Module):
@@ -41,13 +37,13 @@ class Dreamer(nn.Module):
 
         ``whole`` (default: with CUDA graphs only) compiles the whole world-model loss and the
         imagined rollout as two graphs, which CUDA graphs want: fewest launches. Otherwise
-        the loops are compiled in pieces: the filter :data:`FILTER_CHUNK` steps at a time,
+        the loops are compiled in pieces: the filter :data:`~twist_models.rssm.FILTER_CHUNK` steps at a time,
         the overshooting rollout and the imagined rollout, the networks between them eager.
         On a 2-core CPU the pieces compile in about 3 minutes instead of 6-8 and run the
         `quick` update at ~0.94 of the whole graph's speed (docs/performance.md). The
         optimiser steps and the actor-critic's return and loss arithmetic (a few large
         kernels) stay eager either way."""
-        whole = mode == "reduce-overhead" if whole is None else whole
+        whole = compiles_whole(mode, whole)
         self.compiled_mode = mode
         pieces = mode if mode is not None and not whole else None
         self._model_loss = (torch.compile(self.world_model.loss, mode=mode)
