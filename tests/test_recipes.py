@@ -349,11 +349,11 @@ def test_compile_settings_pick_the_whole_objective_or_its_filters_in_pieces(
     assert compiled_objective(objective, None) is objective
     whole = compiled_objective(objective, "reduce-overhead")
     assert whole is not objective and whole._orig_mod is objective
-    for rssm in (student.rssm, teacher.world_model.rssm):
-        assert rssm._filter_chunk is None  # a whole graph leaves the filters alone
+    for rssm in (student.rssm, teacher.world_model.rssm):  # a whole graph leaves them alone
+        assert rssm._filter_chunk is None and rssm._filter_fn == rssm._filter
     assert compiled_objective(objective, "default") is objective
     for rssm in (student.rssm, teacher.world_model.rssm):
-        assert rssm._filter_chunk == FILTER_CHUNK and rssm._filter_fn is not rssm._filter
+        assert rssm._filter_chunk == FILTER_CHUNK and rssm._filter_fn != rssm._filter
 
 
 @pytest.mark.slow
