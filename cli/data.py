@@ -14,7 +14,7 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from rich.table import Table
 
 from twist_cli.common import err, new_app, out, parse_list, run_app
-from twist_data.errors import TwistError
+from twist_data.errors import ConfigError, TwistError
 from twist_data.export import export_hdf5, export_video
 from twist_data.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 from twist_data.reader import open_dataset
@@ -251,29 +251,75 @@ def tasks() -> None:
 def render(
     dataset: DatasetArg,
     out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="New dataset folder to create.")],
+    reproduce: Annotated[bool, typer.Option(
+        help="Rebuild the dataset's own images from its stored physics, DR draws and render "
+             "settings (a stripped D too) and check them against the recorded ones, instead "
+             "of drawing new DR parameters; the DR options below then do not apply.")] = False,
+    workers: Annotated[int, typer.Option(
+        help="Processes rebuilding blocks of episodes with --reproduce, each into shards of "
+             "its own (global episode order kept).")] = 1,
     dr: Annotated[str, typer.Option(help=f"DR preset: {', '.join(DR_PRESETS)}.")] = TRAINING_DR,
     views: Annotated[int, typer.Option(help="K new views per step.")] = 2,
     image_size: Annotated[int | None, typer.Option(
         help="Image side in pixels (default: the dataset's).")] = None,
     add_views: Annotated[bool, typer.Option(
         help="Keep the dataset's views and append the new ones.")] = False,
-    supersample: Annotated[int, typer.Option(help="Render at this multiple and downsample.")] = 1,
+    supersample: Annotated[int | None, typer.Option(
+        help="Render at this multiple and downsample (default: the dataset's).")] = None,
     backgrounds: BackgroundsOption = None,
     seed: Annotated[int, typer.Option(help="Seed of the new DR parameters.")] = 0,
     episodes: Annotated[str | None, typer.Option(
         help="Comma-separated episode indices to re-render, negative from the end (default: "
              "all); each renders as it would in a full re-render.")] = None,
 ) -> None:
-    """Re-render a simulated dataset's stored physics states under a new DR config into OUT."""
-    from twist_data.rerender import rerender_dataset
+    """Re-render a simulated dataset's stored physics states under a new DR config into OUT,
+    or with --reproduce rebuild its own images exactly."""
+    from twist_data.rerender import reproduce_dataset, rerender_dataset
 
+    if reproduce:
+        with progress_bar("rebuilding") as update:
+            report = reproduce_dataset(dataset, out_dir, workers, on_episode=update)
+        gl = report.gl.get("gl_renderer", "an unknown GL")
+        if report.exact:
+            out.print(f"wrote {out_dir}: {report.episodes} episodes rebuilt in "
+                      f"{report.seconds:.1f} s by {report.workers} worker(s), every frame "
+                      f"identical to the recorded ones ({gl})", soft_wrap=True)
+            return
+        err.print(f"wrote {out_dir}, but {len(report.differing)} of {report.episodes} rebuilt "
+                  f"episodes differ from the recorded frames (first: episode "
+                  f"{report.differing[0]}); they were drawn by {gl}, and frames are "
+                  "bit-identical only under the GL implementation that recorded them",
+                  soft_wrap=True)
+        raise typer.Exit(1)
+    if workers != 1:
+        raise ConfigError(f"--workers {workers} applies to --reproduce alone")
     config = dr_preset(dr, backgrounds)
     chosen = None if episodes is None else parse_list(episodes, int, "--episodes")
+    if supersample is None:
+        supersample = open_dataset(dataset).spec.supersample or 1
     with progress_bar("rendering") as update:
         rerender_dataset(dataset, out_dir, config, views=views, image_size=image_size,
                          add_views=add_views, supersample=supersample, seed=seed,
                          episodes=chosen, on_episode=update)
     out.print(f"wrote {out_dir}")
+
+
+@app.command()
+def strip(
+    dataset: DatasetArg,
+    out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="New dataset folder to create.")],
+    teacher: Annotated[bool, typer.Option(
+        help="Keep each collector's final teacher beside it, its weights alone.")] = False,
+) -> None:
+    """Copy a dataset without its images (a few MB that `render --reproduce` rebuilds into the
+    whole D, bit for bit on the same GL implementation)."""
+    from twist_data.strip import strip_dataset
+    from twist_models.checkpoint import weights_only
+
+    with progress_bar("stripping") as update:
+        strip_dataset(dataset, out_dir, weights_only if teacher else None, on_episode=update)
+    out.print(f"wrote {out_dir}: {_human(open_dataset(out_dir).disk_bytes())} "
+              f"(from {_human(open_dataset(dataset).disk_bytes())})", soft_wrap=True)
 
 
 @app.command()

@@ -34,6 +34,11 @@ class SamplerConfigError(TwistError):
     """A sampler or reader request cannot be served by this dataset (window too long, bad view)."""
 
 
+class ImagesStrippedError(TwistError):
+    """A dataset stripped of its images (``twist-data strip``) was given to something that
+    reads images."""
+
+
 class ShardLockedError(TwistError):
     """Another process is already writing this shard."""
 

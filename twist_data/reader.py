@@ -19,6 +19,7 @@ import zarr
 
 from twist_data.errors import (
     DatasetCorruptError,
+    ImagesStrippedError,
     NotADatasetError,
     SamplerConfigError,
     SchemaMismatchError,
@@ -29,8 +30,10 @@ from twist_data.schema import (
     DatasetSpec,
     Episode,
     EpisodeInfo,
+    ImagesRecord,
     check_format,
     step_arrays,
+    stripped_message,
 )
 from twist_data.storage import (
     FrameCorruptError,
@@ -92,6 +95,7 @@ class ShardReader:
         self.spec = DatasetSpec.from_json(block["spec"])
         self.layout = StorageLayout.from_json(block["layout"])
         self.attrs = dict(block)
+        self.images = ImagesRecord.from_attrs(block)
         commit = block["commit"]
         self.n_episodes = int(commit["n_episodes"])
         self.n_steps = int(commit["n_steps"])
@@ -175,10 +179,17 @@ class ShardReader:
             return out
         return self._read_rows(f"data/{key}", start, stop)
 
+    @property
+    def has_images(self) -> bool:
+        """Whether the shard stores its images (False once ``twist-data strip`` removed them)."""
+        return self.images.stored
+
     def read_frames(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
                     rows: np.ndarray) -> None:
         """Decode frame (``steps[i]``, ``views[i]``) of this shard into ``out[rows[i]]``; a
         frame that cannot be decoded raises DatasetCorruptError naming its episode."""
+        if not self.has_images:
+            raise ImagesStrippedError(stripped_message(self.path))
         try:
             self.frames.read_into(steps, views, out, rows)
         except FrameCorruptError as exc:
@@ -271,14 +282,19 @@ class ShardReader:
                                            int(arr.shards[0]), checksum)
         return self._frames
 
-    def episode(self, index: int) -> Episode:
-        """Episode ``index`` of this shard, every array read."""
+    def episode(self, index: int, images: bool = True) -> Episode:
+        """Episode ``index`` of this shard, every array read; with ``images`` False its
+        ``image`` is an empty array of zero views [T, 0, H, W, 3], which nothing can mistake
+        for frames (what a stripped shard gives when asked without images)."""
         if not 0 <= index < self.n_episodes:
             raise SamplerConfigError(
                 f"shard {self.name} has {self.n_episodes} episodes; index {index} is out of range"
             )
         start, stop = int(self.episode_starts[index]), int(self.episode_ends[index])
-        data = {a.name: self.read(a.name, start, stop) for a in step_arrays(self.spec)}
+        data = {a.name: self.read(a.name, start, stop) for a in step_arrays(self.spec)
+                if images or a.name != "image"}
+        if not images:
+            data["image"] = np.empty((stop - start, 0, *self.spec.image_shape), np.uint8)
         dr = {k.removeprefix("dr/"): data.pop(k) for k in list(data) if k.startswith("dr/")}
         return Episode(**data, dr=dr)
 
@@ -332,6 +348,11 @@ class MatchingDataset:
     def _check_schema(self) -> None:
         ref = self.shards[0]
         for shard in self.shards[1:]:
+            if shard.has_images != ref.has_images:
+                stripped, full = (ref, shard) if shard.has_images else (shard, ref)
+                raise SchemaMismatchError(
+                    f"shards {full.name} and {stripped.name} cannot form one dataset: "
+                    f"{stripped.name} was stripped of its images and {full.name} was not")
             diff = ref.spec.differences(shard.spec)
             if diff:
                 raise SchemaMismatchError(
@@ -408,6 +429,7 @@ class MatchingDataset:
 
         ``rows`` defaults to ``0..n-1``.
         """
+        self.require_images()
         rows = np.arange(steps.size) if rows is None else rows
         if np.any(views < 0) or np.any(views >= self.spec.views):
             bad = int(views[(views < 0) | (views >= self.spec.views)][0])
@@ -429,10 +451,24 @@ class MatchingDataset:
         self.read_frames(steps, rng.integers(0, self.spec.views, steps.size), out)
         return out
 
-    def episode(self, index: int) -> Episode:
-        """Global episode ``index`` (episodes numbered over shards in shard-name order)."""
+    @property
+    def has_images(self) -> bool:
+        """Whether the dataset stores its images (every shard agrees: :meth:`_check_schema`)."""
+        return self.shards[0].has_images
+
+    def require_images(self, needed_by: str | None = None) -> None:
+        """Raise :class:`ImagesStrippedError` naming ``needed_by`` and the command that
+        rebuilds the images when the dataset was stripped of them."""
+        if not self.has_images:
+            raise ImagesStrippedError(stripped_message(self.path, needed_by))
+
+    def episode(self, index: int, images: bool = True) -> Episode:
+        """Global episode ``index`` (episodes numbered over shards in shard-name order);
+        ``images`` as :meth:`ShardReader.episode`."""
+        if images:
+            self.require_images()
         shard, local = self.episode_location(index)
-        return self.shards[shard].episode(local)
+        return self.shards[shard].episode(local, images)
 
     def episode_info(self, index: int) -> EpisodeInfo:
         """Provenance of global episode ``index`` as the writer received it."""

@@ -184,6 +184,19 @@ class DRRenderer:
                 "supersample": self.supersample, "camera": self.spec.camera,
                 "slices": RENDER_SLICES, "stacks": RENDER_STACKS, "bank": bank}
 
+    def gl_info(self) -> dict[str, str]:
+        """The OpenGL implementation that draws this renderer's frames (``gl_vendor``,
+        ``gl_renderer``, ``gl_version``): frames are bit-identical only under the same one, so
+        a dataset records it beside its library versions. Empty where it cannot be read."""
+        try:
+            self._gl.make_current()
+            from OpenGL import GL
+
+            return {f"gl_{name.lower()}": GL.glGetString(getattr(GL, f"GL_{name}")).decode()
+                    for name in ("VENDOR", "RENDERER", "VERSION")}
+        except Exception:  # PyOpenGL absent, or another platform binding than the context's
+            return {}
+
     # -- rendering ---------------------------------------------------------------------------
     def render(self, physics: np.ndarray, params: Mapping[str, np.ndarray],
                out: np.ndarray | None = None) -> np.ndarray:

@@ -11,8 +11,14 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import multiprocessing
 import os
+import queue
+import shutil
+import time
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -21,9 +27,9 @@ import numpy as np
 from twist_data.errors import ConfigError, SchemaMismatchError
 from twist_data.randomisation import VIEW_PARAMS, DRConfig, stack_view_params
 from twist_data.reader import MatchingDataset, open_dataset
-from twist_data.render import DRRenderer
+from twist_data.render import DRRenderer, background_bank
 from twist_data.rollout import library_versions
-from twist_data.schema import DatasetSpec, Episode
+from twist_data.schema import DatasetSpec, Episode, image_digest
 from twist_data.seeding import derived_seed
 from twist_data.storage import StorageLayout
 from twist_data.writer import ShardWriter
@@ -42,19 +48,28 @@ def render_blocks(spec: DatasetSpec) -> list[Mapping[str, Any]]:
 
 def renderer_for_block(task: str, block: Mapping[str, Any]) -> DRRenderer:
     """A renderer that reproduces the views of one provenance block exactly."""
+    check_bank(block)
     start, stop = block["views"]
-    renderer = DRRenderer(task, DRConfig.from_json(block["config"]), int(block["image_size"]),
-                          views=int(stop) - int(start), supersample=int(block["supersample"]))
+    return DRRenderer(task, DRConfig.from_json(block["config"]), int(block["image_size"]),
+                      views=int(stop) - int(start), supersample=int(block["supersample"]))
+
+
+def check_bank(block: Mapping[str, Any]) -> None:
+    """Raise unless the background bank a render block names can be rebuilt as recorded
+    (its SHA-256), without opening a GL context: a procedural bank is regenerated, a folder
+    must be present and unchanged."""
+    start, stop = block["views"]
+    config = DRConfig.from_json(block["config"])
+    side = int(block["image_size"]) * int(block["supersample"])
+    bank = background_bank(config, 2 * side)
     recorded = (block.get("bank") or {}).get("sha256")
-    current = renderer.bank.digest() if renderer.bank is not None else None
+    current = bank.digest() if bank is not None else None
     if recorded != current:
-        renderer.close()
         raise SchemaMismatchError(
             f"background bank for views {start}-{stop} differs from the one recorded with the "
             f"dataset (sha256 {recorded} recorded, {current} now); restore "
             f"{block['config'].get('background_dir') or 'the bank'} to reproduce these frames"
         )
-    return renderer
 
 
 def reproduce_frames(dataset: MatchingDataset, steps: np.ndarray) -> np.ndarray:
@@ -75,6 +90,9 @@ def reproduce_frames(dataset: MatchingDataset, steps: np.ndarray) -> np.ndarray:
 
 def check_reproduction(dataset: MatchingDataset, n_steps: int, seed: int = 0) -> list[str]:
     """Re-render ``n_steps`` random steps and list every view whose pixels differ from storage."""
+    if n_steps < 0:
+        raise ConfigError(f"the number of steps to re-render must be >= 0, got {n_steps}")
+    dataset.require_images("comparing re-renders with the stored frames")
     if dataset.n_steps == 0:
         return []
     rng = np.random.default_rng(seed)
@@ -110,6 +128,8 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
     src = open_dataset(source)
     chosen = _episode_indices(episodes, src.n_episodes)
     spec = src.spec
+    if add_views:
+        src.require_images("adding views to the stored ones")
     blocks = render_blocks(spec) if add_views else []
     size = spec.image_height if image_size is None else image_size
     if add_views and size != spec.image_height:
@@ -123,7 +143,8 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
         new_block = renderer.provenance(first_view=kept)
         new_spec = dataclasses.replace(
             spec, views=kept + views, image_height=size, image_width=size,
-            extra={**spec.extra, "render": [*blocks, new_block], "versions": library_versions(),
+            extra={**spec.extra, "render": [*blocks, new_block],
+                   "versions": {**library_versions(), **renderer.gl_info()},
                    "rerendered_from": str(Path(source)),
                    **({} if episodes is None else {"rerendered_episodes": chosen})},
         )
@@ -135,7 +156,7 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
                 name = src.shards[shard].name
                 if name not in writers:
                     writers[name] = ShardWriter.create(out, name, new_spec, layout)
-                episode, info = src.episode(index), src.episode_info(index)
+                episode, info = src.episode(index, images=add_views), src.episode_info(index)
                 new = _render_episode(renderer, sampler, episode, derived_seed(seed, index))
                 if add_views:
                     new = _concat_views(episode, new)
@@ -147,6 +168,178 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
                 writer.close()
     log.info("re-rendered %d episodes of %s into %s", len(chosen), source, out)
     return out
+
+
+@dataclass
+class ReproduceReport:
+    """What :func:`reproduce_dataset` rebuilt, and whether it equals what was recorded."""
+
+    out: Path
+    episodes: int = 0
+    identical: list[int] = field(default_factory=list)
+    """Global episodes whose rebuilt frames equal the recorded ones bit for bit (the stored
+    frames of a full D, the digests of a stripped one)."""
+    differing: list[int] = field(default_factory=list)
+    gl: dict[str, str] = field(default_factory=dict)
+    """The OpenGL implementation that drew the rebuilt frames."""
+    seconds: float = 0.0
+    workers: int = 1
+
+    @property
+    def exact(self) -> bool:
+        return not self.differing
+
+
+def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
+                      workers: int = 1,
+                      on_episode: Callable[[int, int], None] | None = None) -> ReproduceReport:
+    """Rebuild the images of ``source`` (a full or a stripped D) from its stored physics, DR
+    draws and render settings (every render block's image size, supersampling, views and
+    bank) into the new dataset ``out``, in ``workers`` processes.
+
+    One worker writes shards named as the source's; ``workers`` > 1 split the episodes into
+    that many contiguous blocks, each written by its own process into shards named
+    ``<source shard>-<block>``, so that shard-name order keeps every episode's global index
+    (and with it the held-out split). Each episode's frames are compared with the recorded
+    ones by digest; frames that differ (another GL implementation draws other pixels) are
+    kept and reported. Built under a hidden name and renamed into place: a failure leaves
+    nothing at ``out``."""
+    if workers < 1:
+        raise ConfigError(f"workers must be at least 1 process, got {workers}")
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ConfigError(f"output {str(out)!r} exists and is not an empty folder")
+    src = open_dataset(source)
+    for block in render_blocks(src.spec):
+        check_bank(block)
+    if src.n_episodes == 0:
+        raise ConfigError(f"dataset {str(source)!r} has no committed episode to rebuild")
+    parts = _reproduction_plan(src, workers)
+    report = ReproduceReport(out, workers=len(parts))
+    staging = out.parent / f".{out.name}.reproducing-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    started = time.perf_counter()
+    try:
+        if len(parts) == 1:
+            results = _reproduce_part(str(source), str(staging), parts[0], None, on_episode,
+                                      src.n_episodes)
+        else:
+            results = _reproduce_in_processes(str(source), str(staging), parts, on_episode,
+                                              src.n_episodes)
+        if out.exists():
+            out.rmdir()
+        os.rename(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    report.seconds = time.perf_counter() - started
+    for index, rebuilt, recorded, gl in sorted(results):
+        report.episodes += 1
+        report.gl = gl
+        (report.identical if rebuilt == recorded else report.differing).append(index)
+    if report.differing:
+        log.warning("%d of %d rebuilt episodes differ from the recorded frames (first: %d); "
+                    "they were drawn by %s", len(report.differing), report.episodes,
+                    report.differing[0], report.gl.get("gl_renderer", "an unknown GL"))
+    log.info("rebuilt %d episodes of %s into %s in %.1f s with %d worker(s)", report.episodes,
+             source, out, report.seconds, report.workers)
+    return report
+
+
+#: One rebuilt episode: (global index, digest of the rebuilt frames, the recorded digest, GL).
+Rebuilt = tuple[int, str, str, dict[str, str]]
+
+
+def _reproduction_plan(src: MatchingDataset, workers: int) -> list[list[tuple[int, str]]]:
+    """Per worker, its (global episode, output shard name) pairs: contiguous blocks."""
+    n = src.n_episodes
+    workers = min(workers, n)
+    bounds = np.linspace(0, n, workers + 1).round().astype(int)
+    parts = []
+    for w in range(workers):
+        jobs = []
+        for index in range(int(bounds[w]), int(bounds[w + 1])):
+            name = src.shards[src.episode_location(index)[0]].name
+            jobs.append((index, name if workers == 1 else f"{name}-{w:03d}"))
+        parts.append(jobs)
+    return parts
+
+
+def _reproduce_part(source: str, staging: str, jobs: list[tuple[int, str]],
+                    progress: Any, on_episode: Callable[[int, int], None] | None = None,
+                    total: int = 0) -> list[Rebuilt]:
+    """Rebuild ``jobs`` into shards under ``staging``; each finished episode is put on the
+    ``progress`` queue (a worker process) or reported to ``on_episode`` (in-process)."""
+    src = open_dataset(source)
+    spec = src.spec
+    blocks = render_blocks(spec)
+    renderers = [renderer_for_block(spec.task, block) for block in blocks]
+    gl = renderers[0].gl_info()
+    new_spec = dataclasses.replace(spec, extra={
+        **spec.extra, "versions": {**library_versions(), **gl}, "reproduced_from": source})
+    writers: dict[str, ShardWriter] = {}
+    results: list[Rebuilt] = []
+    try:
+        for done, (index, name) in enumerate(jobs, 1):
+            shard_index, local = src.episode_location(index)
+            shard = src.shards[shard_index]
+            episode = shard.episode(local, images=False)
+            images = np.empty((len(episode), spec.views, *spec.image_shape), np.uint8)
+            for block, renderer in zip(blocks, renderers, strict=True):
+                a, b = (int(v) for v in block["views"])
+                for t in range(len(episode)):
+                    renderer.render(episode.physics[t],
+                                    {k: v[t, a:b] for k, v in episode.dr.items()},
+                                    out=images[t, a:b])
+            if shard.has_images:
+                first, last = int(shard.episode_starts[local]), int(shard.episode_ends[local])
+                recorded = image_digest(shard.read("image", first, last))
+            else:
+                recorded = shard.images.sha256[local]
+            if name not in writers:
+                writers[name] = ShardWriter.create(staging, name, new_spec, shard.layout)
+            writers[name].append(dataclasses.replace(episode, image=images),
+                                 src.episode_info(index))
+            results.append((index, image_digest(images), recorded, gl))
+            if progress is not None:
+                progress.put(1)
+            elif on_episode is not None:
+                on_episode(done, total)
+    finally:
+        for writer in writers.values():
+            writer.close()
+        for renderer in renderers:
+            renderer.close()
+    return results
+
+
+def _reproduce_in_processes(source: str, staging: str, parts: list[list[tuple[int, str]]],
+                            on_episode: Callable[[int, int], None] | None,
+                            total: int) -> list[Rebuilt]:
+    # Spawned, not forked: each worker opens its own GL context, which a fork cannot share.
+    context = multiprocessing.get_context("spawn")
+    with context.Manager() as manager, ProcessPoolExecutor(len(parts), mp_context=context) as pool:
+        progress = manager.Queue()
+        futures = [pool.submit(_reproduce_part, source, staging, jobs, progress)
+                   for jobs in parts]
+        done = 0
+        while True:
+            finished, pending = wait(futures, timeout=0.2, return_when=FIRST_EXCEPTION)
+            while True:
+                try:
+                    done += progress.get_nowait()
+                except queue.Empty:
+                    break
+            if on_episode is not None and done:
+                on_episode(done, total)
+            failed = [f for f in finished if f.exception() is not None]
+            if failed:
+                for future in pending:
+                    future.cancel()
+                raise failed[0].exception()
+            if not pending:
+                return [r for future in futures for r in future.result()]
 
 
 def _episode_indices(episodes: Sequence[int] | None, n_episodes: int) -> list[int]:

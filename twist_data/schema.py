@@ -7,6 +7,7 @@ the writer, the reader, ``verify`` and the tests all read the tables below.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -208,6 +209,53 @@ def check_format(attrs: Mapping[str, Any], where: str) -> Mapping[str, Any]:
             f"{FORMAT_VERSION}; upgrade twist to read it"
         )
     return block
+
+
+#: Key of the image record in a shard's ``twist`` block (datasets.md, §2); absent: images stored.
+IMAGES_KEY = "images"
+
+
+@dataclass(frozen=True)
+class ImagesRecord:
+    """What a shard says of its images: stored, or stripped with a digest of each committed
+    episode's frames so that a rebuild can be checked bit for bit (``twist-data strip``)."""
+
+    stored: bool = True
+    """Whether ``data/image`` is present."""
+    sha256: tuple[str, ...] = ()
+    """Per committed episode, :func:`image_digest` of its frames as they were stored."""
+    stored_bytes: int = 0
+    """Bytes the image array took on disk before it was stripped."""
+    stripped_from: str = ""
+    """The dataset the stripped shard was copied from."""
+
+    @classmethod
+    def from_attrs(cls, block: Mapping[str, Any]) -> ImagesRecord:
+        raw = block.get(IMAGES_KEY)
+        if raw is None:
+            return cls()
+        return cls(stored=bool(raw["stored"]), sha256=tuple(raw.get("sha256", ())),
+                   stored_bytes=int(raw.get("stored_bytes", 0)),
+                   stripped_from=str(raw.get("stripped_from", "")))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"stored": self.stored, "sha256": list(self.sha256),
+                "stored_bytes": self.stored_bytes, "stripped_from": self.stripped_from}
+
+
+def image_digest(images: np.ndarray) -> str:
+    """SHA-256 of one episode's frames, uint8 [T, K, H, W, 3], with their shape: equal digests
+    mean bit-identical frames."""
+    h = hashlib.sha256(repr(tuple(images.shape)).encode())
+    h.update(np.ascontiguousarray(images, np.uint8).tobytes())
+    return h.hexdigest()
+
+
+def stripped_message(path: Any, needed_by: str | None = None) -> str:
+    """The one sentence every image reader gives for a stripped dataset at ``path``."""
+    who = f"{needed_by} needs images, but " if needed_by else ""
+    return (f"{who}dataset {str(path)!r} holds none: it was stripped of them by twist-data "
+            f"strip; rebuild them with: twist-data render {path} OUT --reproduce")
 
 
 @dataclass(frozen=True)

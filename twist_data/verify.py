@@ -120,7 +120,15 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
     def problem(message: str, array: str | None = None, episode: int | None = None) -> None:
         report.problems.append(Problem(name, message, array, episode))
 
-    expected = [(a.path, a.dtype, a.trailing, n) for a in step_arrays(shard.spec)]
+    expected = [(a.path, a.dtype, a.trailing, n) for a in step_arrays(shard.spec)
+                if shard.has_images or a.name != "image"]
+    if not shard.has_images:
+        digests = len(shard.images.sha256)
+        if digests != shard.n_episodes:
+            problem(f"records {digests} episode image digests for {shard.n_episodes} committed "
+                    "episodes", "images")
+        report.notes.append(f"shard {name}: stripped of its images ({digests} episode digests "
+                            "kept); twist-data render --reproduce rebuilds them")
     expected += [(f"meta/{c}", dt, (), shard.n_episodes) for c, (dt, _) in EPISODE_COLUMNS.items()]
     expected += [(f"meta/dr/{p.name}", p.dtype, p.shape, shard.n_episodes)
                  for p in shard.spec.episode_dr_params]
@@ -177,7 +185,7 @@ def _check_episodes(shard: ShardReader, loaded: dict[str, np.ndarray],
     names = [a.name for a in step_arrays(spec) if a.name != "image"]
     if not all(f"data/{name}" in loaded for name in names):
         return  # a damaged array was reported already; its episodes cannot be judged
-    frame_shape = tuple(shard.array("data/image").shape[1:])
+    frame_shape = (spec.views, *spec.image_shape)
     returns = shard.episode_column("episode_return")
     policies = shard.policy_names
     for e, (a, b) in enumerate(zip(shard.episode_starts.tolist(), shard.episode_ends.tolist(),

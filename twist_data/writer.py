@@ -41,6 +41,7 @@ from twist_data.schema import (
     DatasetSpec,
     Episode,
     EpisodeInfo,
+    ImagesRecord,
     check_format,
     episode_problems,
     step_arrays,
@@ -186,7 +187,10 @@ class ShardWriter:
                 from None
         try:
             group = zarr.open_group(path, mode="r+")
-            check_format(group.attrs, str(path))
+            block = check_format(group.attrs, str(path))
+            if not ImagesRecord.from_attrs(block).stored:
+                raise NotADatasetError(f"shard {path} was stripped of its images "
+                                       "(twist-data strip); a stripped shard is never appended to")
             return cls(path, group, lock_fd)
         except BaseException:
             os.close(lock_fd)

@@ -62,6 +62,10 @@ def save_checkpoint(path: str | os.PathLike[str], kind: str, module: nn.Module, 
         "versions": {"twist": str(twist_data.__version__), "torch": str(torch.__version__)},
         "extra": json.dumps(dict(extra or {}), sort_keys=True),
     }
+    return _write_payload(path, payload)
+
+
+def _write_payload(path: Path, payload: dict[str, Any]) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     torch.save(payload, tmp)
@@ -69,9 +73,30 @@ def save_checkpoint(path: str | os.PathLike[str], kind: str, module: nn.Module, 
     return path
 
 
+def weights_only(path: str | os.PathLike[str], dest: str | os.PathLike[str]) -> Path:
+    """Copy the checkpoint at ``path`` to ``dest`` without its optimiser states (a `quick`
+    teacher: 4.9 MiB instead of 12.4): what deploys or distils from it, never what resumes
+    its training. Read and written as plain containers, never unpickled."""
+    payload = _load_payload(Path(path))
+    payload["optimisers"] = {}
+    return _write_payload(Path(dest), payload)
+
+
 def read_checkpoint(path: str | os.PathLike[str], kind: str | None = None) -> Checkpoint:
     """Read a checkpoint without unpickling code; ``kind`` requires that kind of model."""
     path = Path(path)
+    payload = _load_payload(path)
+    if kind is not None and payload["kind"] != kind:
+        raise CheckpointError(f"checkpoint {str(path)!r} holds a {payload['kind']}, "
+                              f"not a {kind}")
+    return Checkpoint(kind=payload["kind"], config=json.loads(payload["config"]),
+                      weights=payload["weights"], optimisers=payload["optimisers"],
+                      counters=payload["counters"], versions=payload["versions"],
+                      extra=json.loads(payload.get("extra", "{}")))
+
+
+def _load_payload(path: Path) -> dict[str, Any]:
+    """A checkpoint file's payload, checked for format and version."""
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
@@ -84,13 +109,7 @@ def read_checkpoint(path: str | os.PathLike[str], kind: str | None = None) -> Ch
     if payload.get("version", 0) > VERSION:
         raise CheckpointError(f"checkpoint {str(path)!r} has version {payload.get('version')}; "
                               f"this library reads up to {VERSION}")
-    if kind is not None and payload["kind"] != kind:
-        raise CheckpointError(f"checkpoint {str(path)!r} holds a {payload['kind']}, "
-                              f"not a {kind}")
-    return Checkpoint(kind=payload["kind"], config=json.loads(payload["config"]),
-                      weights=payload["weights"], optimisers=payload["optimisers"],
-                      counters=payload["counters"], versions=payload["versions"],
-                      extra=json.loads(payload.get("extra", "{}")))
+    return payload
 
 
 def config_differences(stored: Mapping[str, Any], expected: Mapping[str, Any],
