@@ -55,6 +55,10 @@ def main(
                                              "rank).")] = "cpu",
     resume: Annotated[bool, typer.Option(
         "--resume", help="Continue an interrupted run in --out.")] = False,
+    time_limit: Annotated[float | None, typer.Option(
+        help="Seconds to train in this call; then stop after the update in progress, write "
+             "the student, agent.pt and the last metrics, and leave the run to --resume.")
+        ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
     settings: Annotated[list[str] | None, typer.Option(
         "--set", help="Override any DistilConfig field, KEY=VALUE (repeatable), e.g. "
@@ -82,7 +86,7 @@ def main(
     resolve_device(device)  # before the bar: a refusal is then the only line printed
     with progress_bar(quiet, "distilling", describe) as report:
         summary = distil(dataset, folder, config, teacher=teacher, resume=resume, device=device,
-                         on_progress=report)
+                         on_progress=report, time_limit=time_limit)
     print_json(summary.to_json())
 
 

@@ -289,6 +289,46 @@ def _rows(csv: Path) -> int:
         return 0
 
 
+def test_a_time_limit_stops_with_a_deployable_student_and_the_run_resumes(
+        distil_inputs, tmp_path, monkeypatch) -> None:
+    """The clock is the module's own, advanced one minute per update: the limit of 3.5 minutes
+    passes during the fourth update, whatever the machine's speed."""
+    import twist_models.stages.distill as stage
+
+    dataset, teacher = distil_inputs
+    config = distil_preset("tiny", steps=10, eval_every=5, checkpoint_every=5, snapshot_every=5)
+    clock = {"now": 0.0}
+
+    class Clock:
+        @staticmethod
+        def perf_counter() -> float:
+            return clock["now"]
+
+    monkeypatch.setattr(stage, "time", Clock)
+    real_step = torch.optim.AdamW.step
+
+    def step(self, *args, **kwargs):
+        clock["now"] += 60.0
+        return real_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.AdamW, "step", step)
+    run = tmp_path / "run"
+    summary = distil(dataset, run, config, teacher=teacher, time_limit=210.0)
+    assert summary.stopped == "time limit" and summary.updates == 4
+    assert json.loads((run / "summary.json").read_text())["stopped"] == "time limit"
+    assert list(pd.read_csv(run / "metrics.csv")["updates"]) == [4]  # the last updates logged
+    assert list(pd.read_csv(run / "heldout.csv")["updates"]) == [0, 4]
+    assert Agent.load(run / "agent.pt").info["student_updates"] == 4
+    assert torch.load(run / "latest.pt", weights_only=True)["counters"]["updates"] == 4
+    resumed = distil(dataset, run, config, teacher=teacher, resume=True)
+    assert resumed.stopped == "done" and resumed.updates == 10
+    assert list(pd.read_csv(run / "metrics.csv")["updates"]) == [4, 5, 10]
+    with pytest.raises(DistilError, match="time limit must be a positive number of seconds, "
+                                          "got 0"):
+        distil(dataset, tmp_path / "never", config, teacher=teacher, time_limit=0)
+    assert not (tmp_path / "never").exists()
+
+
 def test_cli_resumes_after_sigkill_and_continues_the_count(distil_inputs, tmp_path) -> None:
     dataset, teacher = distil_inputs
     run = tmp_path / "run"

@@ -153,6 +153,10 @@ class DistilSummary:
     """Share of this invocation's training time spent waiting for data."""
     heldout_first: dict[str, float]
     heldout_last: dict[str, float]
+    stopped: str = "done"
+    """``done`` (every update the config asks for) or ``time limit`` (resumable)."""
+    frame_updates: int = 0
+    """Single-frame updates of a first stage (:attr:`DistilConfig.frame_steps`)."""
 
     def to_json(self) -> dict[str, Any]:
         return {k: str(v) if isinstance(v, Path) else v
@@ -161,10 +165,18 @@ class DistilSummary:
 
 def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config: DistilConfig,
            teacher: str | os.PathLike[str] | None = None, resume: bool = False,
-           device: str = "cpu", on_progress: Callable[[Progress], None] | None = None
-           ) -> DistilSummary:
+           device: str = "cpu", on_progress: Callable[[Progress], None] | None = None,
+           time_limit: float | None = None) -> DistilSummary:
     """Distil a student from the matching dataset ``dataset`` and a frozen ``teacher``
-    checkpoint (default: the dataset's final teacher) into the run folder ``out``."""
+    checkpoint (default: the dataset's final teacher) into the run folder ``out``.
+
+    ``time_limit``: seconds this call may train; past them the run stops after the update in
+    progress and writes what a finished run writes (the metrics and held-out agreement of
+    its last updates, ``latest.pt``, ``student.pt``, ``agent.pt``, ``summary.json`` with
+    ``stopped`` = ``"time limit"``), so that a short slot ends with a deployable student and
+    ``--resume`` continues to ``steps``."""
+    if time_limit is not None and not time_limit > 0:
+        raise DistilError(f"the time limit must be a positive number of seconds, got {time_limit}")
     torch_device = resolve_device(device)
     out, dataset_path = Path(out), Path(dataset)
     data = _open_inputs(dataset_path, config)
@@ -186,7 +198,8 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,
                torch_device, rank, world, rows)
     try:
-        return run.loop(on_progress)
+        return run.loop(on_progress, None if time_limit is None
+                        else time.perf_counter() + time_limit)
     finally:
         if run.board is not None:
             run.board.close()
@@ -311,6 +324,7 @@ class _Run:
         self.teacher_path, self.device, self.rank, self.world = teacher_path, device, rank, world
         self.teacher = teacher.to_device(device).eval().requires_grad_(False)
         self.writes = rank == 0
+        self.deadline: float | None = None  # set by loop()
         self.run_folder = _run_folder(out)
         latest = self.run_folder.latest
         torch.manual_seed(config.seed)
@@ -462,15 +476,21 @@ class _Run:
                 self.board.image("heldout/latent-agreement", path, self.progress)
         return metrics
 
-    def loop(self, on_progress: Callable[[Progress], None] | None) -> DistilSummary:
+    def loop(self, on_progress: Callable[[Progress], None] | None,
+             deadline: float | None = None) -> DistilSummary:
+        """Train to the config's updates, or until ``deadline`` (``time.perf_counter``)."""
         c = self.config
+        self.deadline = deadline
         if self.updates == 0 and not (self.out / "heldout.csv").exists():
             self.evaluate()
         if self.frame_updates < c.frame_steps and self.updates == 0:
             self.frame_stage(on_progress)
-            # The first stage's student, deployable: the ablation without Eq. 3/4 after it.
-            self._bundle(self.out / f"agent-{0:08d}.pt")
-        windows = self._windows() if self.updates < c.steps else iter(())
+            if self.frame_updates == c.frame_steps:
+                # The first stage's student, deployable: the ablation without Eq. 3/4 after it.
+                self._bundle(self.out / f"agent-{0:08d}.pt")
+        first_stage_done = self.frame_updates >= c.frame_steps
+        windows = (self._windows() if self.updates < c.steps and first_stage_done
+                   else iter(()))
         params = list(self.student.parameters())
         sums: dict[str, float] = {}
         # Training time (waiting for data + the update) per log interval and for the run;
@@ -478,7 +498,7 @@ class _Run:
         interval = {"train": 0.0, "wait": 0.0, "done": 0}
         run = dict(interval)
         wall = time.perf_counter()
-        while self.updates < c.steps:
+        while self.updates < c.steps and first_stage_done and not self._out_of_time():
             tick = time.perf_counter()
             batch = self._window_batch(next(windows))
             waited = time.perf_counter() - tick
@@ -497,7 +517,8 @@ class _Run:
                 record["wait"] += waited
                 record["done"] += 1
             self.updates += 1
-            if self.updates % c.eval_every == 0 or self.updates == c.steps:
+            if (self.updates % c.eval_every == 0 or self.updates == c.steps
+                    or self._out_of_time()):
                 now = time.perf_counter()
                 self.seconds, wall = self.seconds + now - wall, now
                 row = {"updates": self.updates, "wall_s": round(self.seconds, 2),
@@ -515,7 +536,8 @@ class _Run:
                                          row["updates_per_s"], row["data_wait_share"],
                                          row["loss"], heldout["h_mse"]))
                 sums, interval = {}, {"train": 0.0, "wait": 0.0, "done": 0}
-            if self.updates % c.checkpoint_every == 0 or self.updates == c.steps:
+            if (self.updates % c.checkpoint_every == 0 or self.updates == c.steps
+                    or self._out_of_time()):
                 self._checkpoint(self.run_folder.latest)
             if self.updates % c.snapshot_every == 0:
                 self._checkpoint(self.out / f"student-{self.updates:08d}.pt")
@@ -528,7 +550,12 @@ class _Run:
             updates=self.updates, seconds=round(self.seconds, 2),
             updates_per_second=round(run["done"] / run["train"], 3) if run["done"] else 0.0,
             data_wait_share=round(run["wait"] / run["train"], 4) if run["done"] else 0.0,
-            heldout_first=self.heldout_first, heldout_last=self.heldout_last)
+            heldout_first=self.heldout_first, heldout_last=self.heldout_last,
+            stopped="done" if self.updates >= c.steps and first_stage_done else "time limit",
+            frame_updates=self.frame_updates)
+        if summary.stopped != "done":
+            log.info("stopped at the time limit after %d single-frame and %d window updates; "
+                     "--resume continues", self.frame_updates, self.updates)
         if self.writes:
             (self.out / "summary.json").write_text(json.dumps(summary.to_json(), indent=2))
         return summary
@@ -548,7 +575,7 @@ class _Run:
         done, spent, wall = 0, 0.0, time.perf_counter()
         log.info("frame stage: %d updates of %d frames", c.frame_steps - self.frame_updates,
                  c.frame_batch)
-        while self.frame_updates < c.frame_steps:
+        while self.frame_updates < c.frame_steps and not self._out_of_time():
             tick = time.perf_counter()
             batch = batches.batch()
             if mirror is not None:  # each frame mirrored with probability 1/2, with its state
@@ -585,7 +612,8 @@ class _Run:
             spent += time.perf_counter() - tick
             done += 1
             self.frame_updates += 1
-            if self.frame_updates % c.frame_eval_every == 0 or self.frame_updates == c.frame_steps:
+            if (self.frame_updates % c.frame_eval_every == 0
+                    or self.frame_updates == c.frame_steps or self._out_of_time()):
                 now = time.perf_counter()
                 self.seconds, wall = self.seconds + now - wall, now
                 row = {"frame_updates": self.frame_updates, "wall_s": round(self.seconds, 2),
@@ -601,6 +629,9 @@ class _Run:
                 sums, done, spent = {}, 0, 0.0
                 self._checkpoint(self.run_folder.latest)
         self.seconds += time.perf_counter() - wall
+
+    def _out_of_time(self) -> bool:
+        return self.deadline is not None and time.perf_counter() >= self.deadline
 
     def _bundle(self, path: Path) -> Path:
         # Every snapshot is deployable too: the return need not rise with the updates (it fell
