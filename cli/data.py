@@ -258,6 +258,10 @@ def render(
     workers: Annotated[int, typer.Option(
         help="Processes rebuilding blocks of episodes with --reproduce, each into shards of "
              "its own (global episode order kept).")] = 1,
+    accept_other_gl: Annotated[bool, typer.Option(
+        help="With --reproduce: exit 0 when rebuilt frames differ from the recorded ones, as "
+             "they do where another GL implementation draws them (the count is reported).")
+        ] = False,
     dr: Annotated[str, typer.Option(help=f"DR preset: {', '.join(DR_PRESETS)}.")] = TRAINING_DR,
     views: Annotated[int, typer.Option(help="K new views per step.")] = 2,
     image_size: Annotated[int | None, typer.Option(
@@ -290,7 +294,11 @@ def render(
                   f"{report.differing[0]}); they were drawn by {gl}, and frames are "
                   "bit-identical only under the GL implementation that recorded them",
                   soft_wrap=True)
-        raise typer.Exit(1)
+        if not accept_other_gl:
+            raise typer.Exit(1)
+        return
+    if accept_other_gl:
+        raise ConfigError("--accept-other-gl applies to --reproduce alone")
     if workers != 1:
         raise ConfigError(f"--workers {workers} applies to --reproduce alone")
     config = dr_preset(dr, backgrounds)

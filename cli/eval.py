@@ -3,6 +3,7 @@ simulator, on held-out scenes by default."""
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Annotated
@@ -24,6 +25,8 @@ from twist_models.stages.evaluation import (
     load_agent,
     run_evaluation,
 )
+from twist_models.stages.learning_curve import FLOOR, ORACLE, evaluate_snapshots
+from twist_models.stages.learning_curve import snapshots as snapshot_agents
 from twist_models.statistics import format_paired
 
 app = new_app()
@@ -55,10 +58,16 @@ def parse_agents(specs: list[str], device: str, posterior: str = "sample"
 
 @app.command()
 def main(
-    agent: Annotated[list[str], typer.Option(
+    agent: Annotated[list[str] | None, typer.Option(
         help="Teacher checkpoint (the oracle, on states), agent bundle (agent.pt, on "
              "images), a reference agent (zero, random) or module:function, a policy of "
-             "the Gymnasium observations, as SPEC or NAME=SPEC; repeat for several.")],
+             "the Gymnasium observations, as SPEC or NAME=SPEC; repeat for several.")] = None,
+    snapshots: Annotated[Path | None, typer.Option(
+        help="A twist-distil run folder: evaluate every snapshot it kept (agent-<updates>.pt), "
+             "its teacher and the zero floor on the same episodes, and write the learning "
+             "curve (curve.csv, curve.png) instead of --agent.")] = None,
+    teacher: Annotated[Path | None, typer.Option(
+        help="With --snapshots: the teacher to compare with [the run's].")] = None,
     task: Annotated[str | None, typer.Option(help="Task [the first agent's].")] = None,
     dr: Annotated[str, typer.Option(help="DR preset of the scenes.")] = "heldout",
     backgrounds: Annotated[Path | None, typer.Option(
@@ -94,7 +103,16 @@ def main(
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
     require_posterior_read(posterior, "--posterior")
-    agents = parse_agents(agent, device, posterior)
+    if (snapshots is None) == (not agent):
+        raise ConfigError("give either --agent (one or more) or --snapshots RUN")
+    if teacher is not None and snapshots is None:
+        raise ConfigError("--teacher names the teacher of --snapshots; give --agent instead")
+    if snapshots is not None:
+        found = snapshot_agents(snapshots)
+        agents = parse_agents([str(path) for path in list(found.values())[-1:]], device,
+                              posterior)
+    else:
+        agents = parse_agents(agent, device, posterior)
     if task is None:
         task = agents_setting(agents, "task")
         if task is None:
@@ -106,6 +124,24 @@ def main(
                         posterior=posterior,
                         backgrounds=None if backgrounds is None else str(backgrounds))
     seed_list = parse_list(seeds, int, "--seeds")
+    if snapshots is not None:
+        with progress_bar(quiet, "evaluating snapshots", describe) as report:
+            curve = evaluate_snapshots(snapshots, config, out_dir, teacher, seed_list, device,
+                                       resume, batch, workers, on_progress=None if report is None
+                                       else lambda done, total: report((done, total)))
+        table = Table(title=f"{task}, DR {dr}, {episodes} episodes x {len(seed_list)} seeds: "
+                            "the run's snapshots")
+        for column in ("agent", "updates", "mean ± s.e.", "paired vs oracle ± s.e."):
+            table.add_column(column)
+        for row in curve.itertuples():
+            student = row.agent not in (ORACLE, FLOOR)
+            table.add_row(row.agent, f"{int(row.progress)}" if student else "",
+                          f"{row.mean:.1f} ± {row.sem:.1f}",
+                          f"{row.paired_vs_oracle:+.1f} ± {row.paired_vs_oracle_sem:.1f}"
+                          if student else "")
+        out.print(table)
+        print_json(json.loads(curve.to_json(orient="records")), indent=None)
+        return
     with progress_bar(quiet, "evaluating", describe) as report:
         summary = run_evaluation(agents, config, seed_list, out_dir, video, device,
                                  against=paired_with, resume=resume, batch=batch,

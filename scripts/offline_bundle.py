@@ -7,8 +7,9 @@ that machine's Python, in one folder to copy there with the repository.
     . scripts/offline_install.sh DIR [TARGET]
 
 dm-control's wheel (56 MB) is slimmed to ~7 MB: it drops ``dm_control/locomotion`` and the
-dog's meshes, which no twist task loads (``twist-data tasks``), so that the bundle and the
-repository fit where a transfer is limited (~50 MB together).
+dog's meshes, which no twist task loads (``twist-data tasks``); mujoco's drops
+``mujoco/experimental`` (its Studio app, ~40 MB unpacked), which nothing imports. So the bundle
+and the repository fit where a transfer is limited.
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ from pathlib import Path
 PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_24_x86_64",
              "manylinux_2_17_x86_64", "manylinux2014_x86_64", "manylinux1_x86_64")
 #: Folders of a wheel that no twist task reads, by the wheel's distribution name.
-UNUSED = {"dm_control": ("dm_control/locomotion/", "dm_control/suite/dog_assets/")}
+UNUSED = {"dm_control": ("dm_control/locomotion/", "dm_control/suite/dog_assets/"),
+          "mujoco": ("mujoco/experimental/",)}
 
 
 def slim_wheel(wheel: Path, unused: tuple[str, ...]) -> int:

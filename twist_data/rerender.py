@@ -10,6 +10,7 @@ extended with more views) without re-training a teacher.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import multiprocessing
 import os
@@ -175,6 +176,7 @@ class ReproduceReport:
     """What :func:`reproduce_dataset` rebuilt, and whether it equals what was recorded."""
 
     out: Path
+    source: str = ""
     episodes: int = 0
     identical: list[int] = field(default_factory=list)
     """Global episodes whose rebuilt frames equal the recorded ones bit for bit (the stored
@@ -189,6 +191,11 @@ class ReproduceReport:
     def exact(self) -> bool:
         return not self.differing
 
+    def to_json(self) -> dict[str, Any]:
+        return {"source": self.source, "episodes": self.episodes,
+                "identical": len(self.identical), "differing": self.differing, "gl": self.gl,
+                "seconds": round(self.seconds, 2), "workers": self.workers}
+
 
 def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
                       workers: int = 1,
@@ -202,7 +209,8 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
     ``<source shard>-<block>``, so that shard-name order keeps every episode's global index
     (and with it the held-out split). Each episode's frames are compared with the recorded
     ones by digest; frames that differ (another GL implementation draws other pixels) are
-    kept and reported. Built under a hidden name and renamed into place: a failure leaves
+    kept and reported. ``out`` also gets the report as :data:`REPORT` (readers ignore files
+    beside the shards). Built under a hidden name and renamed into place: a failure leaves
     nothing at ``out``."""
     if workers < 1:
         raise ConfigError(f"workers must be at least 1 process, got {workers}")
@@ -215,7 +223,7 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
     if src.n_episodes == 0:
         raise ConfigError(f"dataset {str(source)!r} has no committed episode to rebuild")
     parts = _reproduction_plan(src, workers)
-    report = ReproduceReport(out, workers=len(parts))
+    report = ReproduceReport(out, str(source), workers=len(parts))
     staging = out.parent / f".{out.name}.reproducing-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
@@ -227,17 +235,18 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
         else:
             results = _reproduce_in_processes(str(source), str(staging), parts, on_episode,
                                               src.n_episodes)
+        report.seconds = time.perf_counter() - started
+        for index, rebuilt, recorded, gl in sorted(results):
+            report.episodes += 1
+            report.gl = gl
+            (report.identical if rebuilt == recorded else report.differing).append(index)
+        (staging / REPORT).write_text(json.dumps(report.to_json(), indent=2))
         if out.exists():
             out.rmdir()
         os.rename(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    report.seconds = time.perf_counter() - started
-    for index, rebuilt, recorded, gl in sorted(results):
-        report.episodes += 1
-        report.gl = gl
-        (report.identical if rebuilt == recorded else report.differing).append(index)
     if report.differing:
         log.warning("%d of %d rebuilt episodes differ from the recorded frames (first: %d); "
                     "they were drawn by %s", len(report.differing), report.episodes,
@@ -247,6 +256,8 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
     return report
 
 
+#: The reproduction's report, written beside the rebuilt shards.
+REPORT = "reproduction.json"
 #: One rebuilt episode: (global index, digest of the rebuilt frames, the recorded digest, GL).
 Rebuilt = tuple[int, str, str, dict[str, str]]
 

@@ -1,0 +1,77 @@
+#!/usr/bin/env bash
+# One short GPU slot: distil a student from a D collected elsewhere and measure its learning
+# curve. Starts from a carry folder (scripts/gpu_carry.py: D stripped of its images, the
+# teacher's weights, optionally the wheels a GPU image lacks), then
+#   1. installs twist (the carried wheels into /tmp when the image has no package index);
+#   2. rebuilds D's images from their stored physics and DR draws on every core
+#      (twist-data render --reproduce; frames drawn by another GL than the one that recorded
+#      D are accepted and counted in dataset/reproduction.json);
+#   3. distils for STEPS updates or DISTIL_SECONDS, whichever ends first (compiled on a GPU),
+#      keeping a deployable snapshot every SNAPSHOT_EVERY updates;
+#   4. evaluates every snapshot, the teacher and the zero floor on EVAL_EPISODES held-out
+#      episodes (twist-eval --snapshots: curve.csv, curve.png);
+#   5. copies at most 8 result files to RESULTS (a slot returns few files).
+# Every stage resumes where it stopped: the same command in a later slot continues the run.
+#
+#   bash scripts/gpu_slot.sh CARRY [OUT]      # OUT defaults to runs/slot
+#
+# Settings (environment): DEVICE (cuda), PRESET (quick), RECIPE (paper), STEPS (12000),
+# SNAPSHOT_EVERY (2000), DISTIL_SECONDS (420), EVAL_EPISODES (10), WORKERS (processes that
+# rebuild D: the cores), COMPILE (true on CUDA, false elsewhere), RESULTS ($OUT/results),
+# DISTIL_SET (space-separated KEY=VALUE settings passed on as --set).
+# PRESET=tiny DEVICE=cpu runs it at test sizes in seconds (tests/test_gpu_slot.py does).
+set -euo pipefail
+CARRY="${1:?usage: bash scripts/gpu_slot.sh CARRY [OUT]}"
+OUT="${2:-runs/slot}"
+CARRY="$(cd "$CARRY" && pwd)"
+cd "$(dirname "$0")/.."
+if command -v twist-distil >/dev/null 2>&1; then
+  export MUJOCO_GL="${MUJOCO_GL:-egl}"
+elif [[ -d "$CARRY/wheels" ]]; then
+  # A GPU image with its own CUDA torch and no package index: the carried wheels, into /tmp.
+  . scripts/offline_install.sh "$CARRY/wheels" /tmp/twist-site
+  export MUJOCO_GL="${MUJOCO_GL:-egl}"
+else
+  . scripts/bootstrap.sh
+fi
+. scripts/stages.sh
+DEVICE="${DEVICE:-cuda}"
+PRESET="${PRESET:-quick}"
+RECIPE="${RECIPE:-paper}"
+STEPS="${STEPS:-12000}"
+SNAPSHOT_EVERY="${SNAPSHOT_EVERY:-2000}"
+EVAL_EPISODES="${EVAL_EPISODES:-10}"
+RESULTS="${RESULTS:-$OUT/results}"
+COMPILE="${COMPILE:-$([[ "$DEVICE" == cuda* ]] && echo true || echo false)}"
+mkdir -p "$OUT"
+
+if [[ ! -d "$OUT/dataset" ]]; then
+  stage rebuild twist-data render "$CARRY/dataset" "$OUT/dataset" --reproduce \
+        --workers "${WORKERS:-$(nproc)}" --accept-other-gl
+fi
+
+SETTINGS=(--set "snapshot_every=$SNAPSHOT_EVERY" --set "eval_every=$SNAPSHOT_EVERY"
+          --set "checkpoint_every=$SNAPSHOT_EVERY" --set "compile=$COMPILE")
+for setting in ${DISTIL_SET:-}; do SETTINGS+=(--set "$setting"); done
+RESUME=()
+if [[ -f "$OUT/student/config.json" ]]; then RESUME=(--resume); fi
+stage distil twist-distil --dataset "$OUT/dataset" --teacher "$CARRY/teacher.pt" \
+      --out "$OUT/student" --preset "$PRESET" --recipe "$RECIPE" --device "$DEVICE" \
+      --steps "$STEPS" --time-limit "${DISTIL_SECONDS:-420}" --quiet "${SETTINGS[@]}" \
+      "${RESUME[@]}" > "$OUT/distil-summary.json"
+
+EVAL=(--episodes "$EVAL_EPISODES" --batch "$EVAL_EPISODES")
+if [[ "$PRESET" == tiny ]]; then EVAL+=(--max-steps 20); fi
+if [[ -f "$OUT/curve/episodes.csv" ]]; then EVAL+=(--resume); fi
+stage curve twist-eval --snapshots "$OUT/student" --teacher "$CARRY/teacher.pt" --dr heldout \
+      --device "$DEVICE" --out "$OUT/curve" --quiet "${EVAL[@]}" > /dev/null
+
+write_timings "$OUT/timings.json" "preset=$PRESET" "recipe=$RECIPE" "device=$DEVICE" \
+  "updates=$(python -c 'import json, sys; print(json.load(sys.stdin)["updates"])' \
+             < "$OUT/distil-summary.json")"
+mkdir -p "$RESULTS"
+cp "$OUT/timings.json" "$OUT/distil-summary.json" "$OUT/dataset/reproduction.json" \
+   "$OUT/student/metrics.csv" "$OUT/student/heldout.csv" "$OUT/curve/curve.csv" \
+   "$OUT/curve/curve.png" "$OUT/curve/episodes.csv" "$RESULTS/"
+cat "$OUT/timings.json"
+echo "slot done: results in $RESULTS"

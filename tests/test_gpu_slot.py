@@ -1,0 +1,65 @@
+"""The GPU-slot kit at test sizes on the CPU: a carry folder built by scripts/gpu_carry.py from
+a collected D, then scripts/gpu_slot.sh rebuilds D from it, distils, evaluates the snapshots
+and packs its results; a second run resumes without redoing work."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def carry(dataset: Path, out: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu_carry.py"), str(dataset),
+                           str(out), *args], capture_output=True, text=True)
+
+
+def test_the_slot_runs_from_a_carry_and_resumes(collected_tiny: Path, tmp_path: Path) -> None:
+    built = carry(collected_tiny, tmp_path / "carry")
+    assert built.returncode == 0, built.stderr
+    assert sorted(p.name for p in (tmp_path / "carry").iterdir()) == ["dataset", "teacher.pt"]
+    teacher = (collected_tiny / "collect" / "collect-000" / "teacher.pt").stat().st_size
+    assert (tmp_path / "carry" / "teacher.pt").stat().st_size < teacher  # no optimiser states
+
+    out = tmp_path / "slot"
+
+    def slot() -> subprocess.CompletedProcess[str]:
+        result = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_slot.sh"),
+                                 str(tmp_path / "carry"), str(out)],
+                                env={**os.environ,
+                                     "TWIST_VENV": sys.prefix, "PRESET": "tiny",
+                                     "DEVICE": "cpu", "STEPS": "4", "SNAPSHOT_EVERY": "2",
+                                     "EVAL_EPISODES": "2", "WORKERS": "2"},
+                                capture_output=True, text=True, timeout=900)
+        assert result.returncode == 0, result.stderr[-3000:]
+        return result
+
+    slot()
+    results = sorted(p.name for p in (out / "results").iterdir())
+    assert len(results) <= 8 and "curve.csv" in results and "reproduction.json" in results
+    rebuilt = json.loads((out / "results" / "reproduction.json").read_text())
+    assert rebuilt["identical"] == rebuilt["episodes"] > 0  # the same machine: the same GL
+    curve = pd.read_csv(out / "results" / "curve.csv")
+    assert list(curve["agent"]) == ["oracle", "zero", "u00000002", "u00000004"]
+    timings = json.loads((out / "results" / "timings.json").read_text())
+    assert timings["updates"] == 4 and {"rebuild_s", "distil_s", "curve_s"} <= set(timings)
+
+    slot()  # a later slot: everything found done
+    assert json.loads((out / "distil-summary.json").read_text())["updates"] == 4
+    assert len(pd.read_csv(out / "curve" / "episodes.csv")) == 8
+
+
+def test_a_carry_over_the_limit_is_refused_and_removed(collected_tiny: Path,
+                                                       tmp_path: Path) -> None:
+    result = carry(collected_tiny, tmp_path / "carry", "--limit-mib", "0.5")
+    assert result.returncode == 2 and "over the limit of 0.5 MiB" in result.stderr
+    assert "Traceback" not in result.stderr and not (tmp_path / "carry").exists()
+    result = carry(tmp_path / "nowhere", tmp_path / "carry")
+    assert result.returncode == 2 and "does not exist" in result.stderr
+    assert not (tmp_path / "carry").exists()
