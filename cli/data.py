@@ -280,9 +280,10 @@ def render(
     or with --reproduce rebuild its own images exactly."""
     from twist_data.rerender import reproduce_dataset, rerender_dataset
 
+    chosen = None if episodes is None else parse_list(episodes, int, "--episodes")
     if reproduce:
         with progress_bar("rebuilding") as update:
-            report = reproduce_dataset(dataset, out_dir, workers, on_episode=update)
+            report = reproduce_dataset(dataset, out_dir, workers, chosen, on_episode=update)
         gl = report.gl.get("gl_renderer", "an unknown GL")
         if report.exact:
             out.print(f"wrote {out_dir}: {report.episodes} episodes rebuilt in "
@@ -302,7 +303,6 @@ def render(
     if workers != 1:
         raise ConfigError(f"--workers {workers} applies to --reproduce alone")
     config = dr_preset(dr, backgrounds)
-    chosen = None if episodes is None else parse_list(episodes, int, "--episodes")
     if supersample is None:
         supersample = open_dataset(dataset).spec.supersample or 1
     with progress_bar("rendering") as update:

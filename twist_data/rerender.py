@@ -198,7 +198,7 @@ class ReproduceReport:
 
 
 def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
-                      workers: int = 1,
+                      workers: int = 1, episodes: Sequence[int] | None = None,
                       on_episode: Callable[[int, int], None] | None = None) -> ReproduceReport:
     """Rebuild the images of ``source`` (a full or a stripped D) from its stored physics, DR
     draws and render settings (every render block's image size, supersampling, views and
@@ -209,9 +209,10 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
     ``<source shard>-<block>``, so that shard-name order keeps every episode's global index
     (and with it the held-out split). Each episode's frames are compared with the recorded
     ones by digest; frames that differ (another GL implementation draws other pixels) are
-    kept and reported. ``out`` also gets the report as :data:`REPORT` (readers ignore files
-    beside the shards). Built under a hidden name and renamed into place: a failure leaves
-    nothing at ``out``."""
+    kept and reported. ``episodes``: the source's episodes to rebuild (negative ones count
+    from the end; None: all), recorded as ``extra["rerendered_episodes"]``. ``out`` also gets
+    the report as :data:`REPORT` (readers ignore files beside the shards). Built under a
+    hidden name and renamed into place: a failure leaves nothing at ``out``."""
     if workers < 1:
         raise ConfigError(f"workers must be at least 1 process, got {workers}")
     out = Path(out)
@@ -222,19 +223,21 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
         check_bank(block)
     if src.n_episodes == 0:
         raise ConfigError(f"dataset {str(source)!r} has no committed episode to rebuild")
-    parts = _reproduction_plan(src, workers)
+    chosen = _episode_indices(episodes, src.n_episodes)
+    parts = _reproduction_plan(src, chosen, workers)
     report = ReproduceReport(out, str(source), workers=len(parts))
     staging = out.parent / f".{out.name}.reproducing-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     started = time.perf_counter()
     try:
+        subset = None if episodes is None else chosen
         if len(parts) == 1:
-            results = _reproduce_part(str(source), str(staging), parts[0], None, on_episode,
-                                      src.n_episodes)
+            results = _reproduce_part(str(source), str(staging), parts[0], subset, None,
+                                      on_episode, len(chosen))
         else:
-            results = _reproduce_in_processes(str(source), str(staging), parts, on_episode,
-                                              src.n_episodes)
+            results = _reproduce_in_processes(str(source), str(staging), parts, subset,
+                                              on_episode, len(chosen))
         report.seconds = time.perf_counter() - started
         for index, rebuilt, recorded, gl in sorted(results):
             report.episodes += 1
@@ -262,15 +265,17 @@ REPORT = "reproduction.json"
 Rebuilt = tuple[int, str, str, dict[str, str]]
 
 
-def _reproduction_plan(src: MatchingDataset, workers: int) -> list[list[tuple[int, str]]]:
-    """Per worker, its (global episode, output shard name) pairs: contiguous blocks."""
-    n = src.n_episodes
+def _reproduction_plan(src: MatchingDataset, chosen: list[int], workers: int
+                       ) -> list[list[tuple[int, str]]]:
+    """Per worker, its (global episode, output shard name) pairs: contiguous blocks of the
+    ``chosen`` (sorted) episodes."""
+    n = len(chosen)
     workers = min(workers, n)
     bounds = np.linspace(0, n, workers + 1).round().astype(int)
     parts = []
     for w in range(workers):
         jobs = []
-        for index in range(int(bounds[w]), int(bounds[w + 1])):
+        for index in chosen[int(bounds[w]):int(bounds[w + 1])]:
             name = src.shards[src.episode_location(index)[0]].name
             jobs.append((index, name if workers == 1 else f"{name}-{w:03d}"))
         parts.append(jobs)
@@ -278,7 +283,8 @@ def _reproduction_plan(src: MatchingDataset, workers: int) -> list[list[tuple[in
 
 
 def _reproduce_part(source: str, staging: str, jobs: list[tuple[int, str]],
-                    progress: Any, on_episode: Callable[[int, int], None] | None = None,
+                    subset: list[int] | None, progress: Any,
+                    on_episode: Callable[[int, int], None] | None = None,
                     total: int = 0) -> list[Rebuilt]:
     """Rebuild ``jobs`` into shards under ``staging``; each finished episode is put on the
     ``progress`` queue (a worker process) or reported to ``on_episode`` (in-process)."""
@@ -288,7 +294,8 @@ def _reproduce_part(source: str, staging: str, jobs: list[tuple[int, str]],
     renderers = [renderer_for_block(spec.task, block) for block in blocks]
     gl = renderers[0].gl_info()
     new_spec = dataclasses.replace(spec, extra={
-        **spec.extra, "versions": {**library_versions(), **gl}, "reproduced_from": source})
+        **spec.extra, "versions": {**library_versions(), **gl}, "reproduced_from": source,
+        **({} if subset is None else {"rerendered_episodes": subset})})
     writers: dict[str, ShardWriter] = {}
     results: list[Rebuilt] = []
     try:
@@ -326,13 +333,14 @@ def _reproduce_part(source: str, staging: str, jobs: list[tuple[int, str]],
 
 
 def _reproduce_in_processes(source: str, staging: str, parts: list[list[tuple[int, str]]],
+                            subset: list[int] | None,
                             on_episode: Callable[[int, int], None] | None,
                             total: int) -> list[Rebuilt]:
     # Spawned, not forked: each worker opens its own GL context, which a fork cannot share.
     context = multiprocessing.get_context("spawn")
     with context.Manager() as manager, ProcessPoolExecutor(len(parts), mp_context=context) as pool:
         progress = manager.Queue()
-        futures = [pool.submit(_reproduce_part, source, staging, jobs, progress)
+        futures = [pool.submit(_reproduce_part, source, staging, jobs, subset, progress)
                    for jobs in parts]
         done = 0
         while True:
