@@ -216,3 +216,16 @@ def test_verify_applies_the_writers_own_episode_rules(dataset: Path) -> None:
         (2, problems[1][1]),
     ]
     assert problems[1][1].startswith("stored return") and "sum of rewards" in problems[1][1]
+
+
+def test_a_shard_with_no_committed_episode_verifies(tmp_path: Path) -> None:
+    """What a collection leaves when its disk fills before the first commit: a shard that
+    exists, with nothing committed, beside an intact one."""
+    from twist_data.writer import ShardWriter
+
+    dataset = write_synthetic_dataset(tmp_path / "ds", DATA, LAYOUT)
+    spec = open_dataset(dataset).spec
+    ShardWriter.create(dataset, "zz-empty", spec, LAYOUT).close()
+    report = verify_dataset(dataset)
+    assert report.ok and report.shards == 2 and report.episodes == DATA.episodes
+    assert open_dataset(dataset).shards[1].episode_starts.size == 0

@@ -149,7 +149,7 @@ class ShardReader:
     @property
     def episode_starts(self) -> np.ndarray:
         ends = self.episode_ends
-        return np.concatenate([[0], ends[:-1]]).astype(np.int64)
+        return np.concatenate([[0], ends[:-1]]).astype(np.int64)[:ends.size]
 
     def episode_column(self, name: str) -> np.ndarray:
         """A per-episode column (``episode_seed``, ``dr/<name>`` ...) for committed episodes."""
