@@ -127,3 +127,19 @@ def test_bad_settings_are_refused_in_one_line(settings: dict, message: str) -> N
     with pytest.raises((ConfigError, TwistError), match=message) as error:
         TwistEnv(**settings)
     assert "\n" not in str(error.value)
+
+
+def test_a_script_that_never_closes_its_environment_exits_silently(gl) -> None:
+    """Its renderer's GL context is freed before EGL is torn down at exit, not by MuJoCo's
+    destructor after it (which printed an EGLError traceback)."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import gymnasium, twist_data.gym_env\n"
+              "env = gymnasium.make('twist/cartpole-balance-heldout-v0')\n"
+              "env.reset(seed=0)\nenv.step(env.action_space.sample())\nprint('stepped')\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            env={**os.environ, "MUJOCO_GL": "egl"}, timeout=120)
+    assert result.returncode == 0 and result.stdout.strip() == "stepped"
+    assert "Exception ignored" not in result.stderr and "Error" not in result.stderr

@@ -24,12 +24,14 @@ library versions, which is what ``twist-data render`` and ``verify --rerender`` 
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import copy
 import functools
 import logging
 import math
 import os
+import weakref
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -63,6 +65,27 @@ def background_bank(config: DRConfig, texture_size: int) -> BackgroundBank | Non
         return directory_bank(Path(config.background_dir), texture_size)
     return procedural_bank(config.background, config.background_count, texture_size,
                            config.background_seed)
+
+
+#: Renderers whose GL context is still open. A context left to MuJoCo's own destructor at
+#: interpreter shutdown, after EGL is torn down, prints an EGLError traceback from a user's
+#: script that never called close(); these are closed at exit instead, while EGL still works.
+_OPEN: weakref.WeakSet[DRRenderer] = weakref.WeakSet()
+
+
+def _close_open_renderers() -> None:
+    for renderer in list(_OPEN):
+        with contextlib.suppress(Exception):
+            renderer.close()
+
+
+def _track(renderer: DRRenderer) -> None:
+    # Registered after MuJoCo registers its eglTerminate (at the first context), so that it
+    # runs before it: atexit calls the last registered first.
+    if not _OPEN:
+        atexit.unregister(_close_open_renderers)
+        atexit.register(_close_open_renderers)
+    _OPEN.add(renderer)
 
 
 class FrameRenderer(Protocol):
@@ -133,6 +156,7 @@ class DRRenderer:
         self.nominal_colours = np.array(
             [m.mat_rgba[g, :3] if g >= 0 else (0.5, 0.5, 0.5) for g in self._groups], np.float32)
         self._gl = self._make_context(self._cols * side, self._rows * side)
+        _track(self)
         self._context = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._context)
         self._scene = mujoco.MjvScene(m, maxgeom=1000)
