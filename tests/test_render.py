@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -461,6 +462,25 @@ def test_rerender_new_config_keeps_everything_but_images(sim_dataset: Path, tmp_
     ends = new.episodes()["length"].cumsum().to_numpy()
     assert (background[: ends[0]] == background[0]).all()
     assert check_reproduction(new, n_steps=10) == []
+
+
+def test_the_episode_resampled_training_preset_holds_one_scene_per_episode(
+        sim_dataset: Path, tmp_path: Path) -> None:
+    out = rerender_dataset(sim_dataset, tmp_path / "held", dr_preset("train-wide-episode"),
+                           views=2, seed=3)
+    new = open_dataset(out)
+    assert DRConfig.from_json(new.spec.extra["render"][0]["config"]) == \
+        dr_preset("train-wide-episode")
+    ends = np.cumsum(new.episode_lengths)
+    for key in ("background", "background_offset", "colour"):
+        values = new.column(f"dr/{key}")
+        first, second = values[:ends[0]], values[ends[0]:ends[1]]
+        assert (first == first[0]).all() and (second == second[0]).all(), key
+        assert not np.array_equal(first[0], second[0]), key  # drawn anew for each episode
+    # Otherwise train-wide's: its bank and ranges.
+    assert dataclasses.replace(dr_preset("train-wide-episode"), resample="step") == \
+        dr_preset("train-wide")
+    assert check_reproduction(new, n_steps=6) == []
 
 
 def test_rerendering_chosen_episodes_renders_them_as_a_full_rerender_does(

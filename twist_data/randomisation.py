@@ -125,10 +125,14 @@ _FULL = dict(light_range=(0.5, 1.5), camera_shift=0.05, camera_rotation=0.1,
 #: ``train-leaves`` adds dead leaves, a family with the statistics of photographs, for
 #: students that must read scenes in front of real photographs (one cartpole seed: 800.2
 #: against 752.5 in front of eight photographs, the same on held-out backgrounds);
-#: ``none`` renders the nominal scene.
+#: ``train-wide-episode`` is ``train-wide`` drawn once per episode and held, as every
+#: evaluation holds its scene, for windows whose recurrence sees what deployment shows (the
+#: paper randomises per step when collecting and does not say how the windows it distils
+#: from are rendered); ``none`` renders the nominal scene.
 DR_PRESETS: dict[str, DRConfig] = {
     "train": DRConfig(background="train", resample="step"),
     "train-wide": _WIDE,
+    "train-wide-episode": dataclasses.replace(_WIDE, resample="episode"),
     "train-leaves": DRConfig(background="leaves", background_count=1024, resample="step"),
     "train-contrast": DRConfig(background="train", resample="step",
                                low_contrast_share=_CAMOUFLAGED_SHARE),
