@@ -46,16 +46,20 @@ def build_carry(dataset: Path, carry: Path, teacher: Path | None = None,
     total with the repository's tree. Nothing is left at ``carry`` when it fails."""
     from twist_data.reader import open_dataset
     from twist_data.strip import strip_dataset
-    from twist_models.checkpoint import weights_only
+    from twist_models.checkpoint import read_checkpoint, weights_only
     from twist_models.teacher import find_teacher
 
-    open_dataset(dataset)  # a path that is not a dataset is named as such, first
+    task = open_dataset(dataset).spec.task  # a path that is not a dataset is named first
     if carry.exists():
         raise CarryError(f"carry folder {str(carry)!r} exists; remove it or name another")
     if wheels is not None and not sorted(wheels.glob("*.whl")):
         raise CarryError(f"{str(wheels)!r} holds no wheel (*.whl); make them with "
                          "scripts/offline_bundle.py")
     source_teacher = teacher if teacher is not None else find_teacher(dataset)
+    taught = read_checkpoint(source_teacher, kind="teacher").extra.get("collect", {}).get("task")
+    if taught not in (None, task):
+        raise CarryError(f"teacher {str(source_teacher)!r} learned {taught!r}, but the dataset "
+                         f"is of {task!r}")
     try:
         strip_dataset(dataset, carry / "dataset")
         weights_only(source_teacher, carry / "teacher.pt")

@@ -10,7 +10,9 @@
 #      keeping a deployable snapshot every SNAPSHOT_EVERY updates;
 #   4. evaluates every snapshot, the teacher and the zero floor on EVAL_EPISODES held-out
 #      episodes (twist-eval --snapshots: curve.csv, curve.png);
-#   5. copies at most 8 result files to RESULTS (a slot returns few files).
+#   5. copies six result files to RESULTS (a slot returns at most eight; a log may be the
+#      seventh): slot.json (stage seconds, the rebuild's report, the distiller's summary),
+#      metrics.csv, heldout.csv, curve.csv, curve.png, episodes.csv.
 # Every stage resumes where it stopped: the same command in a later slot continues the run.
 #
 #   bash scripts/gpu_slot.sh CARRY [OUT]      # OUT defaults to runs/slot
@@ -69,9 +71,18 @@ stage curve twist-eval --snapshots "$OUT/student" --teacher "$CARRY/teacher.pt" 
 write_timings "$OUT/timings.json" "preset=$PRESET" "recipe=$RECIPE" "device=$DEVICE" \
   "updates=$(python -c 'import json, sys; print(json.load(sys.stdin)["updates"])' \
              < "$OUT/distil-summary.json")"
+# One JSON of the slot (stage seconds, the rebuild's report, the distiller's summary) and the
+# five tables and plot: six files, leaving room for a log among the eight a slot returns.
+python - "$OUT" <<'PY'
+import json, pathlib, sys
+out = pathlib.Path(sys.argv[1])
+parts = {"timings": out / "timings.json", "rebuild": out / "dataset" / "reproduction.json",
+         "distil": out / "distil-summary.json"}
+slot = {name: json.loads(path.read_text()) for name, path in parts.items() if path.exists()}
+(out / "slot.json").write_text(json.dumps(slot, indent=2))
+PY
 mkdir -p "$RESULTS"
-cp "$OUT/timings.json" "$OUT/distil-summary.json" "$OUT/dataset/reproduction.json" \
-   "$OUT/student/metrics.csv" "$OUT/student/heldout.csv" "$OUT/curve/curve.csv" \
-   "$OUT/curve/curve.png" "$OUT/curve/episodes.csv" "$RESULTS/"
+cp "$OUT/slot.json" "$OUT/student/metrics.csv" "$OUT/student/heldout.csv" \
+   "$OUT/curve/curve.csv" "$OUT/curve/curve.png" "$OUT/curve/episodes.csv" "$RESULTS/"
 cat "$OUT/timings.json"
 echo "slot done: results in $RESULTS"

@@ -42,13 +42,16 @@ def test_the_slot_runs_from_a_carry_and_resumes(collected_tiny: Path, tmp_path: 
 
     slot()
     results = sorted(p.name for p in (out / "results").iterdir())
-    assert len(results) <= 8 and "curve.csv" in results and "reproduction.json" in results
-    rebuilt = json.loads((out / "results" / "reproduction.json").read_text())
+    assert results == ["curve.csv", "curve.png", "episodes.csv", "heldout.csv", "metrics.csv",
+                       "slot.json"]
+    record = json.loads((out / "results" / "slot.json").read_text())
+    rebuilt = record["rebuild"]
     assert rebuilt["identical"] == rebuilt["episodes"] > 0  # the same machine: the same GL
     curve = pd.read_csv(out / "results" / "curve.csv")
     assert list(curve["agent"]) == ["oracle", "zero", "u00000002", "u00000004"]
-    timings = json.loads((out / "results" / "timings.json").read_text())
-    assert timings["updates"] == 4 and {"rebuild_s", "distil_s", "curve_s"} <= set(timings)
+    timings = record["timings"]
+    assert timings["updates"] == record["distil"]["updates"] == 4
+    assert {"rebuild_s", "distil_s", "curve_s"} <= set(timings)
 
     slot()  # a later slot: everything found done
     assert json.loads((out / "distil-summary.json").read_text())["updates"] == 4
@@ -62,4 +65,16 @@ def test_a_carry_over_the_limit_is_refused_and_removed(collected_tiny: Path,
     assert "Traceback" not in result.stderr and not (tmp_path / "carry").exists()
     result = carry(tmp_path / "nowhere", tmp_path / "carry")
     assert result.returncode == 2 and "does not exist" in result.stderr
+    assert not (tmp_path / "carry").exists()
+    # A teacher of another task.
+    import torch
+
+    from twist_models.config import teacher_preset
+    from twist_models.teacher import Teacher, save_teacher
+
+    other = save_teacher(tmp_path / "cup.pt", Teacher(teacher_preset("tiny", 8, 2)),
+                         extra={"collect": {"task": "cup-catch"}})
+    torch.manual_seed(0)
+    result = carry(collected_tiny, tmp_path / "carry", "--teacher", str(other))
+    assert result.returncode == 2 and "learned 'cup-catch'" in result.stderr
     assert not (tmp_path / "carry").exists()

@@ -33,6 +33,7 @@ from twist_data.rollout import library_versions
 from twist_data.schema import DatasetSpec, Episode, image_digest
 from twist_data.seeding import derived_seed
 from twist_data.storage import StorageLayout
+from twist_data.tasks import task_spec
 from twist_data.writer import ShardWriter
 
 log = logging.getLogger(__name__)
@@ -219,7 +220,9 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ConfigError(f"output {str(out)!r} exists and is not an empty folder")
     src = open_dataset(source)
-    for block in render_blocks(src.spec):
+    blocks = render_blocks(src.spec)
+    task_spec(src.spec.task)  # an unknown task is refused before anything is written
+    for block in blocks:
         check_bank(block)
     if src.n_episodes == 0:
         raise ConfigError(f"dataset {str(source)!r} has no committed episode to rebuild")
