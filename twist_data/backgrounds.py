@@ -13,6 +13,7 @@ folder of photos, or video files whose frames are used.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 from collections.abc import Callable
@@ -243,9 +244,12 @@ class BackgroundBank:
         return hashlib.sha256(self.textures.tobytes()).hexdigest()
 
 
+@functools.lru_cache(maxsize=2)
 def procedural_bank(source: str, count: int, size: int, seed: int = 0) -> BackgroundBank:
     """``count`` textures of ``size``² pixels from the families of ``source`` (:data:`FAMILIES`),
-    taken in turn."""
+    taken in turn. Kept for the process's next request of the same bank (a `quick` D's takes
+    ~4.5 s to draw, and checking a bank's digest and then rendering with it asks twice); the
+    textures are read-only, so that no user of the shared bank can change another's."""
     if source not in FAMILIES:
         raise ConfigError(f"procedural background source must be one of {sorted(FAMILIES)}, "
                           f"got {source!r}")
@@ -259,6 +263,7 @@ def procedural_bank(source: str, count: int, size: int, seed: int = 0) -> Backgr
         rng = np.random.default_rng([seed, i])
         textures[i] = make(rng, size)
         names.append(f"{family}/{seed}/{i}")
+    textures.setflags(write=False)
     return BackgroundBank(source, textures, tuple(names))
 
 
