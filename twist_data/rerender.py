@@ -15,7 +15,6 @@ import logging
 import multiprocessing
 import os
 import queue
-import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
@@ -32,6 +31,7 @@ from twist_data.render import DRRenderer, background_bank
 from twist_data.rollout import library_versions
 from twist_data.schema import DatasetSpec, Episode, image_digest
 from twist_data.seeding import derived_seed
+from twist_data.staging import built_aside, require_new_folder
 from twist_data.storage import StorageLayout
 from twist_data.tasks import task_spec
 from twist_data.writer import ShardWriter
@@ -217,8 +217,7 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
     if workers < 1:
         raise ConfigError(f"workers must be at least 1 process, got {workers}")
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ConfigError(f"output {str(out)!r} exists and is not an empty folder")
+    require_new_folder(out)
     src = open_dataset(source)
     blocks = render_blocks(src.spec)
     task_spec(src.spec.task)  # an unknown task is refused before anything is written
@@ -229,11 +228,8 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
     chosen = _episode_indices(episodes, src.n_episodes)
     parts = _reproduction_plan(src, chosen, workers)
     report = ReproduceReport(out, str(source), workers=len(parts))
-    staging = out.parent / f".{out.name}.reproducing-{os.getpid()}"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
     started = time.perf_counter()
-    try:
+    with built_aside(out, "reproducing") as staging:
         subset = None if episodes is None else chosen
         if len(parts) == 1:
             results = _reproduce_part(str(source), str(staging), parts[0], subset, None,
@@ -247,12 +243,6 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
             report.gl = gl
             (report.identical if rebuilt == recorded else report.differing).append(index)
         (staging / REPORT).write_text(json.dumps(report.to_json(), indent=2))
-        if out.exists():
-            out.rmdir()
-        os.rename(staging, out)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     if report.differing:
         log.warning("%d of %d rebuilt episodes differ from the recorded frames (first: %d); "
                     "they were drawn by %s", len(report.differing), report.episodes,

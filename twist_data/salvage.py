@@ -16,8 +16,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from twist_data.errors import ConfigError, DatasetCorruptError
+from twist_data.errors import DatasetCorruptError
 from twist_data.reader import open_dataset
+from twist_data.staging import require_new_folder
 from twist_data.writer import ShardWriter
 
 log = logging.getLogger(__name__)
@@ -39,8 +40,7 @@ def salvage_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
     (which must not exist or be empty). A shard whose own metadata or episode table is damaged
     cannot be opened, and then nothing can be salvaged: that error is raised."""
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ConfigError(f"output {str(out)!r} exists and is not an empty folder")
+    require_new_folder(out)
     src = open_dataset(source)
     report = SalvageReport(out)
     writers: dict[str, ShardWriter] = {}

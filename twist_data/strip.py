@@ -22,6 +22,7 @@ import zarr
 from twist_data.errors import ConfigError
 from twist_data.reader import ShardReader, open_dataset
 from twist_data.schema import ATTRS_KEY, IMAGES_KEY, ImagesRecord, image_digest
+from twist_data.staging import built_aside, require_new_folder
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +47,7 @@ def strip_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
     ``twist-distil`` finds it beside the rebuilt D. Built under a hidden name and renamed into
     place: a failure leaves nothing at ``out``."""
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ConfigError(f"output {str(out)!r} exists and is not an empty folder")
+    require_new_folder(out)
     src = open_dataset(source)
     if not src.has_images:
         raise ConfigError(f"dataset {str(source)!r} was stripped of its images already")
@@ -55,10 +55,7 @@ def strip_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
     if copy_teacher is not None and not teachers:
         raise ConfigError(f"dataset {str(source)!r} has no final teacher "
                           f"(collect/*/{FINAL_TEACHER}) to keep beside the stripped copy")
-    staging = out.parent / f".{out.name}.stripping-{os.getpid()}"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
-    try:
+    with built_aside(out, "stripping") as staging:
         done = 0
         for shard in src.shards:
             digests = []
@@ -72,12 +69,6 @@ def strip_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
         _copy_run_folders(Path(source), staging)
         for path in teachers:
             copy_teacher(path, staging / "collect" / path.parent.name / FINAL_TEACHER)
-        if out.exists():
-            out.rmdir()
-        os.rename(staging, out)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     log.info("stripped %s into %s: %d episodes", source, out, src.n_episodes)
     return out
 
