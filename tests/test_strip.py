@@ -99,6 +99,17 @@ def test_every_image_reader_refuses_a_stripped_dataset_naming_the_rebuild(
         ShardWriter.resume(stripped / "collect-000.zarr")
 
 
+def test_the_distiller_refuses_a_stripped_dataset_before_writing(stripped: Path,
+                                                                  tmp_path: Path) -> None:
+    from twist_models.distillation import distil_preset
+    from twist_models.stages.distill import distil
+
+    with pytest.raises(ImagesStrippedError, match=r"twist-distil needs images, but .* "
+                                                  r"twist-data render .* --reproduce"):
+        distil(stripped, tmp_path / "student", distil_preset("tiny"))
+    assert not (tmp_path / "student").exists()
+
+
 @pytest.mark.parametrize(("source", "workers"), [("stripped", 2), ("recorded", 1)])
 def test_reproduction_rebuilds_every_array_bit_for_bit(source: str, workers: int,
                                                        request: pytest.FixtureRequest,

@@ -139,7 +139,9 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
     dataset, out = Path(dataset), Path(out)
     if not dataset.exists():
         raise BaselineError(f"dataset {str(dataset)!r} does not exist")
-    spec = open_dataset(dataset).spec
+    data = open_dataset(dataset)
+    data.require_images("twist-baseline")
+    spec = data.spec
     dreamer_config = image_dreamer_preset(config.model, spec.state_dim, spec.action_dim,
                                           spec.image_height, recon=KINDS[config.kind])
     behaviour = behaviour_config(spec.extra, dreamer_config.actor_critic)

@@ -209,6 +209,7 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
     if not path.exists():
         raise DistilError(f"dataset {str(path)!r} does not exist")
     data = open_dataset(path)
+    data.require_images("twist-distil")
     spec = data.spec
     if spec.views < 1 or spec.image_height < 1:
         raise DistilError(f"dataset {str(path)!r} has no images (views={spec.views}); the "
