@@ -8,6 +8,7 @@ import logging
 from pathlib import Path
 from typing import Annotated
 
+import pandas as pd
 import typer
 from rich.table import Table
 
@@ -68,6 +69,9 @@ def main(
              "curve (curve.csv, curve.png) instead of --agent.")] = None,
     teacher: Annotated[Path | None, typer.Option(
         help="With --snapshots: the teacher to compare with [the run's].")] = None,
+    agreement_episodes: Annotated[int, typer.Option(
+        help="With --snapshots: episodes over which each snapshot acts while the teacher's "
+             "filter follows it on the states (closed-loop agreement; 0: none).")] = 3,
     task: Annotated[str | None, typer.Option(help="Task [the first agent's].")] = None,
     dr: Annotated[str, typer.Option(help="DR preset of the scenes.")] = "heldout",
     backgrounds: Annotated[Path | None, typer.Option(
@@ -127,18 +131,23 @@ def main(
     if snapshots is not None:
         with progress_bar(quiet, "evaluating snapshots", describe) as report:
             curve = evaluate_snapshots(snapshots, config, out_dir, teacher, seed_list, device,
-                                       resume, batch, workers, on_progress=None if report is None
+                                       resume, batch, workers, agreement_episodes,
+                                       on_progress=None if report is None
                                        else lambda done, total: report((done, total)))
         table = Table(title=f"{task}, DR {dr}, {episodes} episodes x {len(seed_list)} seeds: "
                             "the run's snapshots")
-        for column in ("agent", "updates", "mean ± s.e.", "paired vs oracle ± s.e."):
+        for column in ("agent", "updates", "mean ± s.e.", "paired vs oracle ± s.e.",
+                       "closed loop: h explained, action corr"):
             table.add_column(column)
         for row in curve.itertuples():
             student = row.agent not in (ORACLE, FLOOR)
+            measured = student and pd.notna(row.closed_loop_h_explained)
             table.add_row(row.agent, f"{int(row.progress)}" if student else "",
                           f"{row.mean:.1f} ± {row.sem:.1f}",
                           f"{row.paired_vs_oracle:+.1f} ± {row.paired_vs_oracle_sem:.1f}"
-                          if student else "")
+                          if student else "",
+                          f"{row.closed_loop_h_explained:.2f}, {row.closed_loop_action_corr:.2f}"
+                          if measured else "")
         out.print(table)
         print_json(json.loads(curve.to_json(orient="records")), indent=None)
         return
