@@ -319,6 +319,8 @@ def test_a_time_limit_stops_with_a_deployable_student_and_the_run_resumes(
     assert list(pd.read_csv(run / "metrics.csv")["updates"]) == [4]  # the last updates logged
     assert list(pd.read_csv(run / "heldout.csv")["updates"]) == [0, 4]
     assert Agent.load(run / "agent.pt").info["student_updates"] == 4
+    # Where it stopped is a snapshot of the learning curve, beside the regular ones.
+    assert Agent.load(run / "agent-00000004.pt").info["student_updates"] == 4
     assert torch.load(run / "latest.pt", weights_only=True)["counters"]["updates"] == 4
     resumed = distil(dataset, run, config, teacher=teacher, resume=True)
     assert resumed.stopped == "done" and resumed.updates == 10

@@ -544,6 +544,11 @@ class _Run:
                 self._checkpoint(self.out / f"student-{self.updates:08d}.pt")
                 self._bundle(self.out / f"agent-{self.updates:08d}.pt")
         self.seconds += time.perf_counter() - wall
+        stopped_early = self.updates < c.steps or not first_stage_done
+        if stopped_early and self.updates and self.updates % c.snapshot_every:
+            # Where a time limit stopped the run is a point of its learning curve too.
+            self._checkpoint(self.out / f"student-{self.updates:08d}.pt")
+            self._bundle(self.out / f"agent-{self.updates:08d}.pt")
         student = self._checkpoint(self.out / FINAL_STUDENT)
         agent = self._bundle(self.out / AGENT)
         summary = DistilSummary(
@@ -552,7 +557,7 @@ class _Run:
             updates_per_second=round(run["done"] / run["train"], 3) if run["done"] else 0.0,
             data_wait_share=round(run["wait"] / run["train"], 4) if run["done"] else 0.0,
             heldout_first=self.heldout_first, heldout_last=self.heldout_last,
-            stopped="done" if self.updates >= c.steps and first_stage_done else "time limit",
+            stopped="time limit" if stopped_early else "done",
             frame_updates=self.frame_updates)
         if summary.stopped != "done":
             log.info("stopped at the time limit after %d single-frame and %d window updates; "
