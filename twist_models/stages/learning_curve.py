@@ -119,14 +119,13 @@ def evaluate_snapshots(run: str | os.PathLike[str], config: EvalConfig,
 def _agreement(found: dict[str, Path], teacher: Path, config: EvalConfig, out: Path,
                episodes: int, seed: int, device: str) -> dict[str, dict[str, float]]:
     """Each snapshot's closed-loop agreement, measured once and kept in :data:`AGREEMENT`."""
+    if episodes == 0:
+        return {}
     path = out / AGREEMENT
     kept: dict[str, dict[str, float]] = {}
     if path.exists():
-        table = pd.read_csv(path)
-        kept = {row.pop("agent"): row for row in table.to_dict(orient="records")
+        kept = {row.pop("agent"): row for row in pd.read_csv(path).to_dict(orient="records")
                 if row["episodes"] == episodes}
-    if episodes == 0:
-        return {}
     oracle = load_agent(teacher, device, config.task)
     for name, bundle in found.items():
         if name not in kept:
