@@ -19,8 +19,10 @@ import torch
 from tests.conftest import board_events
 from twist_data.errors import ConfigError
 from twist_data.reader import open_dataset
+from twist_data.sampler import WindowSampler
 from twist_data.synth import _DT, SYNTH_MIRROR, SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
+from twist_models.checkpoint import read_checkpoint
 from twist_models.config import (
     MLPConfig,
     ReadOutConfig,
@@ -31,7 +33,7 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.curves import student_progress
-from twist_models.distillation import Distillation, distil_preset
+from twist_models.distillation import Distillation, distil_preset, split_context
 from twist_models.frame_targets import FrameRows
 from twist_models.losses import readout_loss
 from twist_models.networks import ImageEncoder
@@ -159,6 +161,53 @@ def test_exact_positions_rebuild_ds_state_and_the_teachers_embedding(inputs) -> 
     with torch.no_grad():
         torch.testing.assert_close(student._embed_state(rebuilt)[0, 1:],
                                    wm.embed(state)[0, 1:], atol=1e-4, rtol=1e-4)
+
+
+def test_a_window_in_mid_episode_reads_its_first_velocity_from_the_frame_before(inputs) -> None:
+    _, _, teacher, rows = inputs
+    readout = Student(student_preset("tiny", teacher.config, readout=_paired(rows))).readout
+    state = rows.state[5:15][None]  # [1, 10, S]: steps 5-14 of the first episode
+    is_first = torch.zeros(state.shape[:2], dtype=torch.bool)
+    with_before = readout.window_state(state[..., 1:, :3], is_first[:, 1:], state[:, 0, :3])
+    # The synthetic integrator is exact: every step's velocity is the true one, the first too.
+    torch.testing.assert_close(with_before[0], state[0, 1:], atol=1e-4, rtol=1e-4)
+    without = readout.window_state(state[..., 1:, :3], is_first[:, 1:])
+    assert torch.equal(without[0, 0, 3:], torch.zeros(2))
+    # At an episode's first step there is no step before, whatever is handed.
+    is_first[:, 1] = True
+    at_first = readout.window_state(state[..., 1:, :3], is_first[:, 1:], state[:, 0, :3])
+    assert torch.equal(at_first[0, 0, 3:], torch.zeros(2))
+
+
+def test_a_readout_students_windows_come_with_the_frame_before_them(inputs) -> None:
+    dataset, _, _, _ = inputs
+    data = open_dataset(dataset)
+    config = distil_preset("tiny", "readout", steps=2)
+    assert config.window_context == 1
+    assert dataclasses.replace(config, readout_first_velocity="zero").window_context == 0
+    assert distil_preset("tiny", "paper").window_context == 0
+    drawn = WindowSampler(data, config.sampler("train", 3, batch_size=32)).batch()
+    assert drawn["image"].shape[1] == config.length + 1
+    windows = split_context({k: torch.as_tensor(v) for k, v in drawn.items()}, 1)
+    assert windows["image"].shape[1] == windows["state"].shape[1] == config.length
+    assert torch.equal(windows["start"], torch.as_tensor(drawn["start"]) + 1)
+    for b in range(32):
+        step, view = int(drawn["start"][b]), int(drawn["view"][b, 0])
+        frame = np.empty((1, *data.spec.image_shape), np.uint8)
+        data.read_frames(np.array([step]), np.array([view]), frame)
+        assert np.array_equal(windows["image_before"][b].numpy(), frame[0])
+        assert torch.equal(windows["state"][b, 0], torch.as_tensor(data.column("state")[step + 1]))
+
+
+@pytest.mark.parametrize(("stage_optimiser", "expected"), [("reset", 2), ("keep", 4 + 2)])
+def test_updates_on_windows_after_a_first_stage_start_a_fresh_optimiser(
+        inputs, tmp_path: Path, stage_optimiser: str, expected: int) -> None:
+    dataset, teacher_path, _, _ = inputs
+    config = distil_preset("tiny", "readout", steps=2, stage_optimiser=stage_optimiser)
+    distil(dataset, tmp_path / "run", config, teacher=teacher_path)
+    moments = read_checkpoint(tmp_path / "run" / "student.pt").optimisers["student"]["state"]
+    # AdamW counts the steps each parameter took since its moments began.
+    assert moments and {int(m["step"]) for m in moments.values()} == {expected}
 
 
 def test_an_angle_difference_is_wrapped_whatever_the_pairs_length() -> None:

@@ -169,6 +169,16 @@ class DistilConfig:
     read); any ``steps`` of Eq. 3/4 train through it. The ``readout`` recipe's 1.25 was
     chosen on held-out scenes of another evaluation seed than the reported one, among 1,
     1.15, 1.25, 1.35 and 1.5 (not in the paper; docs/experiments.md)."""
+    readout_first_velocity: str = "read"
+    """Where a read-out student's velocities at a training window's first step come from, in
+    mid-episode: ``read``, the difference with the frame before the window, which the sampler
+    draws with it (as when acting, where the step before is always seen); ``zero``: none, the
+    velocities 0 while the teacher's filter reads the true ones there, which training alone
+    shows (the measured alternative, docs/results.md)."""
+    stage_optimiser: str = "reset"
+    """What the updates on windows after a first stage (``frame_steps``) start from:
+    ``reset``, a fresh AdamW, since its moments were scaled by another objective's
+    gradients; ``keep``, the first stage's (docs/results.md)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -277,6 +287,8 @@ class DistilConfig:
                               "only a read-out student (readout) has one")
         require_choice(self, "precision", PRECISIONS)
         require_choice(self, "window_start", WINDOW_STARTS)
+        require_choice(self, "readout_first_velocity", ("read", "zero"))
+        require_choice(self, "stage_optimiser", ("reset", "keep"))
         require_choice(self, "resident_data", ("auto", "on", "off"))
         # The mode has no gradient to train the student's posterior through.
         require_choice(self, "filter_read", ("sample", "mean"))
@@ -300,8 +312,16 @@ class DistilConfig:
                 or (self.readout and self.readout_weights != "robust")
                 or self.window_start == "teacher")
 
+    @property
+    def window_context(self) -> int:
+        """Steps drawn before each window for what its first step reads (a read-out
+        student's frame before, ``readout_first_velocity``); :func:`split_context` takes
+        them off."""
+        return int(self.readout and self.readout_first_velocity == "read")
+
     def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
-        return SamplerConfig(length=self.length, batch_size=batch_size or self.batch_size,
+        return SamplerConfig(length=self.length + self.window_context,
+                             batch_size=batch_size or self.batch_size,
                              view=self.view, seed=seed, keys=KEYS,
                              holdout_every=self.holdout_every, split=split,
                              rare_states=self.rare_states if split == "train" else 0.0)
@@ -378,6 +398,23 @@ def distil_preset(name: str, recipe: str = "paper", **overrides: Any) -> DistilC
     return replace_fields(DISTIL_PRESETS[name], settings)
 
 
+def split_context(batch: Mapping[str, torch.Tensor], context: int) -> dict[str, torch.Tensor]:
+    """Windows drawn ``context`` steps longer (:attr:`DistilConfig.window_context`), {k:
+    [B, context + L, ...]} -> the windows proper {k: [B, L, ...]}, with the frame before each
+    as ``image_before`` [B, H, W, 3] and ``start`` moved to the window proper's first step.
+    Where a drawn window starts an episode its first frame is the one before: the window
+    proper, which starts at the episode's second step, then reads the velocity as acting
+    does there."""
+    if context == 0:
+        return dict(batch)
+    out = {k: v[:, context:] if torch.is_tensor(v) and v.dim() >= 2 and k != "image_before"
+           else v for k, v in batch.items()}
+    out["image_before"] = batch["image"][:, context - 1]
+    if "start" in batch:
+        out["start"] = batch["start"] + context
+    return out
+
+
 # -- one update ---------------------------------------------------------------------------------
 def frame_loss(terms: Mapping[str, torch.Tensor], config: DistilConfig) -> torch.Tensor:
     """The per-frame terms weighted by ``config`` (a student without a state head has no
@@ -448,7 +485,8 @@ class Distillation(nn.Module):
             t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
                                               start, post_draws, self.config.filter_read)
         with precision_autocast(self.config.precision, is_first.device):
-            embed = self.student.embed(batch["image"], is_first).float()
+            embed = self.student.embed(batch["image"], is_first,
+                                       batch.get("image_before")).float()
         s_post, s_prior = self.student.rssm.observe(embed, action, is_first, start, post_draws,
                                                     self.config.filter_read)
         terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])

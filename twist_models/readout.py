@@ -283,10 +283,13 @@ class StateReadOut(nn.Module):
             state[..., self.config.velocities[k][0]] = rate
         return state
 
-    def window_state(self, positions: torch.Tensor, is_first: torch.Tensor) -> torch.Tensor:
+    def window_state(self, positions: torch.Tensor, is_first: torch.Tensor,
+                     before: torch.Tensor | None = None) -> torch.Tensor:
         """:meth:`state` along windows: positions [B, T, R], is_first [B, T] -> [B, T, S]. A
-        window's first step (and an episode's) has no step before it here: velocities 0."""
-        shifted = torch.cat([positions[:, :1], positions[:, :-1]], 1)
+        window's first step takes its velocities from the read-out of the step ``before``
+        it ([B, R]), or without one has none: velocities 0, as at an episode's first step."""
+        first = positions[:, :1] if before is None else before[:, None]
+        shifted = torch.cat([first, positions[:, :-1]], 1)
         previous = torch.where(is_first.bool()[..., None], positions, shifted)
         return self.state(positions, previous)
 

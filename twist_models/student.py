@@ -39,13 +39,16 @@ class Student(nn.Module):
         # plainly present in the embedding the posterior head reads.
         self.state_head = nn.Linear(embed_dim, config.state_dim) if config.state_dim else None
 
-    def embed(self, image: torch.Tensor, is_first: torch.Tensor) -> torch.Tensor:
+    def embed(self, image: torch.Tensor, is_first: torch.Tensor,
+              before: torch.Tensor | None = None) -> torch.Tensor:
         """What the posterior reads along windows: image uint8 [B, T, H, W, 3], is_first
         [B, T] -> [B, T, frames * E] (see :func:`stack_frames`), or for a read-out student
-        the teacher's embedding of the state read along them [B, T, E']."""
+        the teacher's embedding of the state read along them [B, T, E'], the first step's
+        velocities from the frame ``before`` each window (uint8 [B, H, W, 3]) where given."""
         if self.readout is not None:
             positions = self._read_positions(image)
-            return self._embed_state(self.readout.window_state(positions, is_first))
+            previous = None if before is None else self._read_positions(before)
+            return self._embed_state(self.readout.window_state(positions, is_first, previous))
         return stack_frames(self.encoder(image), is_first, self.config.frames)
 
     def step_embed(self, image: torch.Tensor, history: torch.Tensor | None

@@ -71,6 +71,7 @@ from twist_models.distillation import (
     compiled_objective,
     frame_loss,
     latent_agreement,
+    split_context,
 )
 from twist_models.frame_targets import (
     FrameBatches,
@@ -411,7 +412,8 @@ class _Run:
         except TwistError as exc:
             raise DistilError(f"no held-out windows (every {c.holdout_every}th episode is held "
                               f"out): {exc}; lower holdout_every or the window length") from None
-        return _to_device(sampler.batch(), self.device)
+        return split_context(_to_device(sampler.batch(), self.device),
+                             c.window_context)
 
     def _windows(self) -> Iterator[dict[str, torch.Tensor]]:
         """Training windows; a resumed run draws from a stream seeded by its update count."""
@@ -444,9 +446,10 @@ class _Run:
         return need <= free / 2
 
     def _window_batch(self, windows: Mapping[str, Any]) -> dict[str, torch.Tensor]:
-        batch = _to_device(windows, self.device)
+        context = self.config.window_context
+        batch = split_context(_to_device(windows, self.device), context)
         if self.config.window_start == "teacher":
-            starts = torch.as_tensor(windows["start"]).cpu().numpy()
+            starts = torch.as_tensor(windows["start"]).cpu().numpy() + context
             start = teacher_latent_before(self.teacher, self.targets, starts)
             batch.update(start_deter=start["deter"], start_stoch=start["stoch"])
         return batch
@@ -490,6 +493,9 @@ class _Run:
                 # The first stage's student, deployable: the ablation without Eq. 3/4 after it.
                 self._bundle(self.out / f"agent-{0:08d}.pt")
         first_stage_done = self.frame_updates >= c.frame_steps
+        if (first_stage_done and c.frame_steps and self.updates == 0 and self.updates < c.steps
+                and c.stage_optimiser == "reset"):
+            self.optimiser = self._optimiser()
         windows = (self._windows() if self.updates < c.steps and first_stage_done
                    else iter(()))
         params = list(self.student.parameters())
