@@ -169,16 +169,17 @@ class DistilConfig:
     read); any ``steps`` of Eq. 3/4 train through it. The ``readout`` recipe's 1.25 was
     chosen on held-out scenes of another evaluation seed than the reported one, among 1,
     1.15, 1.25, 1.35 and 1.5 (not in the paper; docs/experiments.md)."""
-    readout_first_velocity: str = "read"
+    readout_first_velocity: str = "zero"
     """Where a read-out student's velocities at a training window's first step come from, in
-    mid-episode: ``read``, the difference with the frame before the window, which the sampler
-    draws with it (as when acting, where the step before is always seen); ``zero``: none, the
-    velocities 0 while the teacher's filter reads the true ones there, which training alone
-    shows (the measured alternative, docs/results.md)."""
-    stage_optimiser: str = "reset"
+    mid-episode: ``read`` (the ``readout`` recipe's), the difference with the frame before
+    the window, which the sampler draws with it, as when acting, where the step before is
+    always seen; ``zero``: none, the velocities 0 while the teacher's filter reads the true
+    ones there, which only training shows (docs/results.md)."""
+    stage_optimiser: str = "keep"
     """What the updates on windows after a first stage (``frame_steps``) start from:
-    ``reset``, a fresh AdamW, since its moments were scaled by another objective's
-    gradients; ``keep``, the first stage's (docs/results.md)."""
+    ``reset`` (the ``readout`` recipe's), a fresh AdamW, since the first stage's moments were
+    scaled by another objective's gradients; ``keep``, the first stage's
+    (docs/results.md)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -348,7 +349,8 @@ RECIPES: dict[str, dict[str, Any]] = {
     "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0,
               "precision": "auto", "window_start": "teacher", "shared_draws": False},
     "readout": {"readout": True, "encoder_norm": "layer", "precision": "auto",
-                "readout_mirror": "auto", "readout_lean": 1.25},
+                "readout_mirror": "auto", "readout_lean": 1.25, "readout_first_velocity": "read",
+                "stage_optimiser": "reset"},
 }
 #: Updates of each recipe's single-frame stage at each size preset. One update of 64 frames
 #: costs ~1/20 of a ``quick`` update on windows (36 against ~1.5 per second on the 2-core CPU,
