@@ -18,6 +18,7 @@ from twist_data.errors import ConfigError, TwistError
 from twist_data.export import export_hdf5, export_video
 from twist_data.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 from twist_data.reader import open_dataset
+from twist_data.staging import require_new_file
 from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import verify_dataset
@@ -26,6 +27,7 @@ app = new_app(help="Inspect, verify, export, re-render and synthesise TWIST matc
               no_args_is_help=True)
 
 DatasetArg = Annotated[Path, typer.Argument(help="Dataset folder (or one shard folder).")]
+Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace the output file if it exists.")]
 
 
 @contextmanager
@@ -83,8 +85,10 @@ def info(dataset: DatasetArg,
 @app.command()
 def episodes(dataset: DatasetArg,
              csv: Annotated[Path | None, typer.Option(help="Write the table to this CSV file.")]
-             = None) -> None:
+             = None, overwrite: Overwrite = False) -> None:
     """Per-episode table: shard, length, return, seed and provenance."""
+    if csv is not None:
+        require_new_file(csv, overwrite, "CSV file")
     table = open_dataset(dataset).episodes()
     if csv is not None:
         table.to_csv(csv)
@@ -130,9 +134,10 @@ def export_video_cmd(
     episode: Annotated[int, typer.Option(help="Global episode index (-1: the last).")] = 0,
     fps: Annotated[int, typer.Option(help="Frames per second.")] = 25,
     scale: Annotated[int, typer.Option(help="Pixel upscaling factor.")] = 4,
+    overwrite: Overwrite = False,
 ) -> None:
     """Write one episode's K views side by side as a video."""
-    path = export_video(dataset, episode, out_path, fps=fps, scale=scale)
+    path = export_video(dataset, episode, out_path, fps=fps, scale=scale, overwrite=overwrite)
     out.print(f"wrote {path}")
 
 
@@ -158,10 +163,11 @@ def salvage(
 def export_hdf5_cmd(
     dataset: DatasetArg,
     out_path: Annotated[Path, typer.Argument(metavar="OUT", help="Output .h5 file.")],
+    overwrite: Overwrite = False,
 ) -> None:
     """Write every committed episode into one HDF5 file (layout in datasets.md)."""
     with progress_bar("exporting") as update:
-        path = export_hdf5(dataset, out_path, on_progress=update)
+        path = export_hdf5(dataset, out_path, on_progress=update, overwrite=overwrite)
     out.print(f"wrote {path}")
 
 

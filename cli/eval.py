@@ -14,7 +14,9 @@ from rich.table import Table
 
 from twist_cli.common import new_app, out, parse_list, print_json, progress_bar, run_app
 from twist_data.errors import ConfigError
+from twist_data.staging import require_writable
 from twist_data.tasks import DEFAULT_ACTION_REPEAT
+from twist_models.device import resolve_device
 from twist_models.rssm import require_posterior_read
 from twist_models.stages.evaluation import (
     EvalAgent,
@@ -107,6 +109,8 @@ def main(
 ) -> None:
     """Evaluate agents on the same episodes; write episodes.csv, summary.json, returns.png."""
     require_posterior_read(posterior, "--posterior")
+    resolve_device(device)
+    require_writable(out_dir, "output folder")
     if (snapshots is None) == (not agent):
         raise ConfigError("give either --agent (one or more) or --snapshots RUN")
     if teacher is not None and snapshots is None:

@@ -15,6 +15,7 @@ import numpy as np
 from twist_data.errors import TwistError
 from twist_data.reader import open_dataset
 from twist_data.schema import EPISODE_COLUMNS, FORMAT_VERSION, step_arrays
+from twist_data.staging import require_memory, require_new_file
 
 log = logging.getLogger(__name__)
 
@@ -33,12 +34,22 @@ def episode_strip(images: np.ndarray, scale: int = 4) -> np.ndarray:
 
 
 def export_video(dataset_path: str | os.PathLike[str], episode: int, out: str | os.PathLike[str],
-                 fps: int = 25, scale: int = 4) -> Path:
-    """Write episode ``episode`` (global index) as an ``.mp4`` or ``.gif`` with its K views."""
+                 fps: int = 25, scale: int = 4, overwrite: bool = False) -> Path:
+    """Write episode ``episode`` (global index) as an ``.mp4`` or ``.gif`` with its K views;
+    an existing ``out`` only with ``overwrite``."""
     if scale < 1:
         raise ExportError(f"scale must be >= 1, got {scale}")
     _check_video_path(Path(out), fps)
+    require_new_file(Path(out), overwrite, "video file")
     ds = open_dataset(dataset_path)
+    if not -ds.n_episodes <= episode < ds.n_episodes:
+        raise ExportError(f"episode {episode} is out of range: the dataset has "
+                          f"{ds.n_episodes} episodes")
+    spec = ds.spec
+    length = int(ds.episode_lengths[episode])
+    # The upscaled strip, and the episode's frames it is made from, are held whole.
+    strip = length * spec.views * spec.image_height * spec.image_width * 3 * (scale ** 2 + 1)
+    require_memory(strip, f"episode {episode}'s video at scale {scale}")
     return write_video(episode_strip(ds.episode(episode).image, scale), out, fps)
 
 
@@ -107,8 +118,10 @@ def _write_h264(frames: np.ndarray, path: Path, fps: int) -> None:
 
 
 def export_hdf5(dataset_path: str | os.PathLike[str], out: str | os.PathLike[str],
-                on_progress: Callable[[int, int], None] | None = None) -> Path:
-    """Write every committed episode into one HDF5 file (layout in ``datasets.md``).
+                on_progress: Callable[[int, int], None] | None = None,
+                overwrite: bool = False) -> Path:
+    """Write every committed episode into one HDF5 file (layout in ``datasets.md``); an
+    existing ``out`` only with ``overwrite``.
 
     Episodes are streamed one at a time, so memory stays bounded by the longest episode.
     The file is written under a temporary name and renamed when complete.
@@ -116,6 +129,7 @@ def export_hdf5(dataset_path: str | os.PathLike[str], out: str | os.PathLike[str
     out = Path(out)
     if out.is_dir():
         raise TwistError(f"{out} is a folder; give the path of the .h5 file to write")
+    require_new_file(out, overwrite, "HDF5 file")
     ds = open_dataset(dataset_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")

@@ -19,6 +19,7 @@ import numpy as np
 
 from twist_data.schema import DatasetSpec, Episode, EpisodeInfo, ParamSpec
 from twist_data.seeding import derived_seed
+from twist_data.staging import require_disk, require_memory, require_writable
 from twist_data.storage import StorageLayout
 from twist_data.writer import ShardWriter
 
@@ -188,6 +189,12 @@ def write_synthetic_dataset(out: str | os.PathLike[str], config: SynthConfig,
     ``on_episode(done, total)`` is called after each committed episode (progress display).
     """
     out = Path(out)
+    require_writable(out, "dataset folder")
+    frame = config.views * config.image_size ** 2 * 3
+    # One episode is made whole in memory; its frames compress little on disk.
+    require_memory(config.steps * (frame + 64), f"a synthetic episode of {config.steps} steps")
+    require_disk(config.episodes * config.steps * frame, out,
+                 f"writing {config.episodes} synthetic episodes of {config.steps} steps")
     spec = synth_spec(config.views, config.image_size)
     writers = [ShardWriter.create(out, name, spec, layout) for name in shard_names(config)]
     try:

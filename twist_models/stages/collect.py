@@ -72,7 +72,7 @@ from twist_models.curves import plot_learning_curves
 from twist_models.device import COMPILE_SETTINGS, compile_mode, resolve_device
 from twist_models.networks import single_threaded
 from twist_models.policies import Pushes, student_policy, teacher_policy
-from twist_models.stages.runlog import Board, RunFolder, append_csv, prepare_output
+from twist_models.stages.runlog import Board, RunFolder, append_csv, check_output
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teacher, save_teacher
 
 log = logging.getLogger(__name__)
@@ -90,6 +90,11 @@ METRIC_COLUMNS = (
 
 class CollectError(TwistError):
     """Collection cannot start or continue (output folder, disk, resume state)."""
+
+
+#: The most frames one collector run takes: 2,000 times the ``paper`` preset's 500K, beyond
+#: which a typo is likelier than a plan.
+MAX_FRAMES = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -233,6 +238,9 @@ class CollectConfig:
             raise ConfigError(f"unknown model preset {self.model!r}; valid: {', '.join(PRESETS)}")
         if self.dr not in DR_PRESETS:
             raise ConfigError(f"unknown DR preset {self.dr!r}; valid: {', '.join(DR_PRESETS)}")
+        if self.frames > MAX_FRAMES:
+            raise ConfigError(f"frames {self.frames} is more than {MAX_FRAMES:,} (years of "
+                              "simulation on one machine); collect in shards instead")
         require_positive(self, "frames", "views", "image_size", "supersample", "action_repeat",
                          "train_every", "batch_size", "batch_length", "eval_every",
                          "snapshot_every")
@@ -490,7 +498,7 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
 def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
                   resume: bool) -> None:
     """Refuse, before anything is written, every output that would mix incompatible data."""
-    prepare_output(out, CollectError)
+    check_output(out, CollectError)  # created once every input is known good
     if (out / "zarr.json").exists():
         raise CollectError(f"{str(out)!r} is a single shard; give the dataset folder above it")
     if any(out.glob("*.zarr")):

@@ -33,6 +33,7 @@ from twist_data.errors import ConfigError, TwistError
 from twist_data.export import episode_strip, write_video
 from twist_data.randomisation import DR_PRESETS, DRConfig, dr_preset
 from twist_data.seeding import evaluation_episode_seed
+from twist_data.staging import require_writable
 from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Step, TaskEnv, task_spec
 from twist_data.vector_env import EnvWorkers, LocalEnvs
 from twist_models.agent import Agent, AgentState
@@ -49,6 +50,10 @@ from twist_models.teacher import Teacher, teacher_from_checkpoint
 
 class EvalError(TwistError):
     """An evaluation cannot run (agent, task or setting)."""
+
+
+#: The most episodes of one evaluation seed: 1,000 times the paper's 100.
+MAX_EPISODES = 100_000
 
 
 @dataclass(frozen=True)
@@ -83,11 +88,17 @@ class EvalConfig:
         require_posterior_read(self.posterior)
         if self.dr not in DR_PRESETS:
             raise ConfigError(f"unknown DR preset {self.dr!r}; valid: {', '.join(DR_PRESETS)}")
-        if self.episodes < 1:
-            raise ConfigError(f"episodes must be >= 1, got {self.episodes}")
+        if not 1 <= self.episodes <= MAX_EPISODES:
+            raise ConfigError(f"episodes must lie in [1, {MAX_EPISODES:,}] per seed, got "
+                              f"{self.episodes}; more seeds give more episodes")
         require_positive(self, "image_size", "action_repeat")
         if self.supersample is not None:
             require_positive(self, "supersample")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ConfigError(f"max_steps must be >= 1, got {self.max_steps}")
+        if self.backgrounds is not None and not Path(self.backgrounds).is_dir():
+            raise ConfigError(f"background directory {self.backgrounds!r} does not exist or is "
+                              "not a folder")
 
     def dr_config(self) -> DRConfig:
         """The preset (with user backgrounds), drawn once per episode."""
@@ -567,6 +578,9 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
         raise EvalError("no seeds to evaluate")
     if batch < 1 or workers < 1:
         raise ConfigError(f"batch and workers must be >= 1, got {batch} and {workers}")
+    if videos < 0:
+        raise ConfigError(f"videos (episodes to film per agent and seed) must be >= 0, got "
+                          f"{videos}")
     if against is not None and against not in agents:
         raise EvalError(f"the agent to pair against, {against!r}, is not among the agents "
                         f"({', '.join(agents)})")
@@ -574,6 +588,7 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise EvalError(f"output {str(out)!r} exists and is not a folder")
+    require_writable(out, "output folder")
     done = _episodes_done(out, config, resume)
     loaded = {name: load_agent(a, device, config.task, config.posterior)
               if isinstance(a, str | os.PathLike)

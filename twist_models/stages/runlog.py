@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from twist_data.errors import ConfigError, TwistError
+from twist_data.staging import require_writable
 from twist_models.config import from_json, to_json
 
 T = TypeVar("T")
@@ -70,6 +71,17 @@ class Board:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+
+
+def check_output(out: Path, error: type[TwistError]) -> None:
+    """Refuse, with ``error`` and without creating anything, an output folder ``out`` that
+    is a file or could not be created or written (:func:`~twist_data.staging.require_writable`)."""
+    if out.exists() and not out.is_dir():
+        raise error(f"output {str(out)!r} exists and is not a folder")
+    try:
+        require_writable(out, "output folder")
+    except ConfigError as exc:
+        raise error(str(exc)) from None
 
 
 def prepare_output(out: Path, error: type[TwistError]) -> None:
