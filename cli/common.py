@@ -46,10 +46,42 @@ def run_app(app: typer.Typer, log_level: int = logging.WARNING) -> None:
     for name in ("twist_data", "twist_models"):
         logging.getLogger(name).setLevel(log_level)
     try:
-        app()
+        # Not standalone: usage errors come here, to be said in one line like every other.
+        code = app(standalone_mode=False)
     except TwistError as exc:
         err.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
         sys.exit(2)
+    except typer.BadParameter as exc:
+        err.print(f"error: {bad_value(exc, sys.argv[1:])}", markup=False, highlight=False,
+                  soft_wrap=True)
+        sys.exit(2)
+    except typer.Abort:
+        sys.exit(1)
+    except Exception as exc:  # the other usage errors: unknown option, missing argument
+        if not hasattr(exc, "format_message"):
+            raise
+        err.print(f"error: {exc.format_message()} (see --help)", markup=False,
+                  highlight=False, soft_wrap=True)
+        sys.exit(2)
+    if isinstance(code, int) and code:
+        sys.exit(code)
+
+
+def bad_value(exc: typer.BadParameter, args: list[str]) -> str:
+    """One sentence for a value the command line could not take, with the value itself."""
+    if not exc.message:  # a missing option or argument
+        return f"{exc.format_message()} (see --help)"
+    opts = list(getattr(exc.param, "opts", []) or [])
+    given = None
+    for i, arg in enumerate(args):
+        for opt in opts:
+            if arg == opt and i + 1 < len(args):
+                given = args[i + 1]
+            elif arg.startswith(f"{opt}="):
+                given = arg[len(opt) + 1:]
+    name = opts[0] if opts else (exc.param_hint or "a value")
+    value = f" {given!r}" if given is not None else ""
+    return f"invalid value{value} for {name}: {exc.message}"
 
 
 @contextmanager

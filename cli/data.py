@@ -21,7 +21,7 @@ from twist_data.reader import open_dataset
 from twist_data.staging import require_new_file
 from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
-from twist_data.verify import verify_dataset
+from twist_data.verify import quick_problems, verify_dataset
 
 app = new_app(help="Inspect, verify, export, re-render and synthesise TWIST matching datasets.",
               no_args_is_help=True)
@@ -54,7 +54,15 @@ def _human(n: float) -> str:
 @app.command()
 def info(dataset: DatasetArg,
          as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False) -> None:
-    """Shards, episodes, steps, views, shapes, dimensions, bytes and compression."""
+    """Shards, episodes, steps, views, shapes, dimensions, bytes and compression; exit 1, with
+    what it saw, when a look without decoding already finds damage (verify checks every byte)."""
+    seen = quick_problems(dataset)
+    if seen:
+        for problem in seen:
+            err.print(f"problem: {problem}", markup=False, highlight=False, soft_wrap=True)
+        err.print(f"{len(seen)} problem(s) seen without decoding; run `twist-data verify "
+                  f"{dataset}` for every one", markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(1)
     summary = dataset_info(dataset)
     if as_json:
         out.print_json(json.dumps(summary))
@@ -108,6 +116,8 @@ def verify(
              "parameters and require pixel-identical images (simulated datasets only).")] = 0,
 ) -> None:
     """Full integrity check; exit 0 when clean, 1 with one line per problem otherwise."""
+    if rerender < 0:
+        raise ConfigError(f"--rerender takes a number of steps >= 0, got {rerender}")
     with progress_bar("verifying") as update:
         report = verify_dataset(dataset, on_progress=update)
     if rerender > 0 and report.ok:
@@ -152,11 +162,15 @@ def salvage(
 
     with progress_bar("salvaging") as update:
         report = salvage_dataset(dataset, out_dir, on_episode=update)
+    for name, why in report.dropped_shards.items():
+        err.print(f"left behind shard {name}: {why}", markup=False, highlight=False,
+                  soft_wrap=True)
     for index, why in report.dropped.items():
         err.print(f"left behind episode {index}: {why}", markup=False, highlight=False,
                   soft_wrap=True)
-    out.print(f"kept {len(report.kept)} of {len(report.kept) + len(report.dropped)} episodes "
-              f"in {out_dir}")
+    whole = " of the shards that open" if report.dropped_shards else ""
+    out.print(f"kept {len(report.kept)} of {len(report.kept) + len(report.dropped)} episodes"
+              f"{whole} in {out_dir}")
 
 
 @app.command("export-hdf5")

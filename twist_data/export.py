@@ -42,11 +42,9 @@ def export_video(dataset_path: str | os.PathLike[str], episode: int, out: str | 
     _check_video_path(Path(out), fps)
     require_new_file(Path(out), overwrite, "video file")
     ds = open_dataset(dataset_path)
-    if not -ds.n_episodes <= episode < ds.n_episodes:
-        raise ExportError(f"episode {episode} is out of range: the dataset has "
-                          f"{ds.n_episodes} episodes")
-    spec = ds.spec
-    length = int(ds.episode_lengths[episode])
+    shard, local = ds.episode_location(episode)  # refuses an index out of range
+    spec, reader = ds.spec, ds.shards[shard]
+    length = int(reader.episode_ends[local] - reader.episode_starts[local])
     # The upscaled strip, and the episode's frames it is made from, are held whole.
     strip = length * spec.views * spec.image_height * spec.image_width * 3 * (scale ** 2 + 1)
     require_memory(strip, f"episode {episode}'s video at scale {scale}")

@@ -29,7 +29,7 @@ from twist_data.randomisation import VIEW_PARAMS, DRConfig, stack_view_params
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.render import DRRenderer, background_bank
 from twist_data.rollout import library_versions
-from twist_data.schema import DatasetSpec, Episode, image_digest
+from twist_data.schema import DatasetSpec, Episode, image_digest, step_arrays
 from twist_data.seeding import derived_seed
 from twist_data.staging import built_aside, require_new_folder
 from twist_data.storage import StorageLayout
@@ -95,6 +95,12 @@ def check_reproduction(dataset: MatchingDataset, n_steps: int, seed: int = 0) ->
     if n_steps < 0:
         raise ConfigError(f"the number of steps to re-render must be >= 0, got {n_steps}")
     dataset.require_images("comparing re-renders with the stored frames")
+    recorded = {a.name for a in step_arrays(dataset.spec)}
+    missing = [key for key in ("physics", *(f"dr/{p.name}" for p in VIEW_PARAMS))
+               if key not in recorded]
+    if missing:
+        raise ConfigError(f"{str(dataset.path)!r} was not rendered by twist's simulator: it "
+                          f"records no {missing[0]} to re-render from")
     if dataset.n_steps == 0:
         return []
     rng = np.random.default_rng(seed)

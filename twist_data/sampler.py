@@ -177,6 +177,18 @@ class FrameCache:
         self._next = int((self._next + keep) % self.capacity)
 
 
+def image_problem(dataset: MatchingDataset) -> str | None:
+    """Why ``dataset``'s images cannot be read (each shard's first frame is tried), or None:
+    a trainer asks before it writes anything."""
+    frame = np.empty((1, *dataset.spec.image_shape), np.uint8)
+    try:
+        for shard_start in dataset.shard_offsets[:-1]:
+            dataset.read_frames(np.array([shard_start]), np.array([0]), frame)
+    except Exception as exc:  # zarr and the codecs raise assorted types for missing chunks
+        return f"it has no readable images ({type(exc).__name__}: {exc})"
+    return None
+
+
 def window_problem(dataset: MatchingDataset, length: int, view: int | None) -> str | None:
     """Why windows of ``length`` steps showing ``view`` (None: any) cannot be drawn from
     ``dataset`` at all, in one sentence; None when they can. The one check behind every

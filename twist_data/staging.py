@@ -104,3 +104,25 @@ def require_disk(needed: float, path: Path, what: str) -> None:
     if needed > free:
         raise ConfigError(f"{what} needs about {_bytes(needed)} of disk; "
                           f"{str(nearest_existing(Path(path)))!r} has {_bytes(free)} free")
+
+
+@contextmanager
+def removed_on_failure(out: Path) -> Iterator[None]:
+    """Undo what a command's set-up wrote into the folder ``out`` if the block raises: a folder
+    that did not exist is removed, one that was empty is emptied again; one that held
+    anything (a run being resumed) is left as it is."""
+    out = Path(out)
+    existed = out.exists()
+    was_empty = existed and out.is_dir() and not any(out.iterdir())
+    try:
+        yield
+    except BaseException:
+        if not existed:
+            shutil.rmtree(out, ignore_errors=True)
+        elif was_empty:
+            for child in out.iterdir():
+                if child.is_dir() and not child.is_symlink():
+                    shutil.rmtree(child, ignore_errors=True)
+                else:
+                    child.unlink(missing_ok=True)
+        raise

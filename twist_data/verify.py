@@ -11,6 +11,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zarr
@@ -120,8 +121,7 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
     def problem(message: str, array: str | None = None, episode: int | None = None) -> None:
         report.problems.append(Problem(name, message, array, episode))
 
-    expected = [(a.path, a.dtype, a.trailing, n) for a in step_arrays(shard.spec)
-                if shard.has_images or a.name != "image"]
+    expected = _expected_arrays(shard)
     if not shard.has_images:
         digests = len(shard.images.sha256)
         if digests != shard.n_episodes:
@@ -129,23 +129,13 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
                     "episodes", "images")
         report.notes.append(f"shard {name}: stripped of its images ({digests} episode digests "
                             "kept); twist-data render --reproduce rebuilds them")
-    expected += [(f"meta/{c}", dt, (), shard.n_episodes) for c, (dt, _) in EPISODE_COLUMNS.items()]
-    expected += [(f"meta/dr/{p.name}", p.dtype, p.shape, shard.n_episodes)
-                 for p in shard.spec.episode_dr_params]
     loaded: dict[str, np.ndarray] = {}
-    for key, dtype, trailing, committed in expected:
-        try:
-            arr = shard.array(key)
-        except TwistError as exc:
-            problem(str(exc).split(": ", 1)[-1], key)
+    for key, _, _, committed in expected:
+        structure = _structure_problem(shard, key, expected)
+        if structure is not None:
+            problem(structure, key)
             continue
-        if arr.dtype != np.dtype(dtype) or tuple(arr.shape[1:]) != trailing:
-            problem(f"has dtype {arr.dtype} and shape {arr.shape}, expected {dtype} "
-                    f"[*, {', '.join(map(str, trailing))}]", key)
-            continue
-        if arr.shape[0] < committed:
-            problem(f"holds {arr.shape[0]} rows but {committed} are committed (truncated)", key)
-            continue
+        arr = shard.array(key)
         if key.startswith("meta/"):
             for a, b, why in shard.damaged_chunks(key, 0, committed):
                 problem(f"{shard.rows_of(key, a, b)}: {why}", key)
@@ -174,6 +164,68 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
             f"shard {name}: {beyond} uncommitted step(s) beyond the commit record "
             "(an interrupted episode; invisible to readers, discarded on resume)"
         )
+
+
+def _expected_arrays(shard: ShardReader) -> list[tuple[str, Any, tuple[int, ...], int]]:
+    """(key, dtype, trailing shape, committed rows) of every array the shard must hold."""
+    n = shard.n_steps
+    expected = [(a.path, a.dtype, a.trailing, n) for a in step_arrays(shard.spec)
+                if shard.has_images or a.name != "image"]
+    expected += [(f"meta/{c}", dt, (), shard.n_episodes) for c, (dt, _) in EPISODE_COLUMNS.items()]
+    expected += [(f"meta/dr/{p.name}", p.dtype, p.shape, shard.n_episodes)
+                 for p in shard.spec.episode_dr_params]
+    return expected
+
+
+def _structure_problem(shard: ShardReader, key: str,
+                       expected: list[tuple[str, Any, tuple[int, ...], int]]) -> str | None:
+    """What is wrong with array ``key`` before a byte of it is decoded: absent, another dtype or
+    shape, fewer rows than committed."""
+    _, dtype, trailing, committed = next(e for e in expected if e[0] == key)
+    try:
+        arr = shard.array(key)
+    except TwistError as exc:
+        return str(exc).split(": ", 1)[-1]
+    if arr.dtype != np.dtype(dtype) or tuple(arr.shape[1:]) != trailing:
+        return (f"has dtype {arr.dtype} and shape {arr.shape}, expected {dtype} "
+                f"[*, {', '.join(map(str, trailing))}]")
+    if arr.shape[0] < committed:
+        return f"holds {arr.shape[0]} rows but {committed} are committed (truncated)"
+    return None
+
+
+def quick_problems(path: str | os.PathLike[str]) -> list[str]:
+    """What a look at the dataset at ``path`` finds wrong without decoding anything: shards
+    that do not open, arrays absent, of another shape or shorter than their commit record,
+    chunk files missing. An empty list is no clean bill of health: only
+    :func:`verify_dataset` decodes and checksums every byte."""
+    found = []
+    for p in find_shards(Path(path)):
+        try:
+            shard = ShardReader(p)
+        except TwistError as exc:
+            found.append(f"shard {p.name}: {exc}")
+            continue
+        expected = _expected_arrays(shard)
+        for key, _, _, committed in expected:
+            structure = _structure_problem(shard, key, expected)
+            if structure is None:
+                gaps = shard.missing_chunks(key, 0, committed)
+                structure = f"{len(gaps)} chunk file(s) missing" if gaps else None
+            if structure is not None:
+                found.append(f"shard {shard.name}, {key}: {structure}")
+            elif key == "data/image":  # each image file's own index: a few KiB, no frame
+                arr, per_file = shard.array(key), rows_per_file(shard.array(key))
+                missing = {a for a, _ in shard.missing_chunks(key, 0, committed)}
+                for a in range(0, committed, per_file):
+                    index = None if a in missing else _shard_index_problem(
+                        arr, shard.path / "data" / "image", a // per_file,
+                        per_file * shard.spec.views)
+                    if index:
+                        found.append(f"shard {shard.name}, {key}: "
+                                     f"{shard.rows_of(key, a, min(a + per_file, committed))}: "
+                                     f"{index}")
+    return found
 
 
 def _check_episodes(shard: ShardReader, loaded: dict[str, np.ndarray],

@@ -25,13 +25,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
 from twist_data.errors import ConfigError, TwistError
-from twist_data.reader import open_dataset
-from twist_data.sampler import SamplerConfig, WindowDataset
+from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.sampler import SamplerConfig, WindowDataset, image_problem, window_problem
 from twist_data.seeding import derived_seed
+from twist_data.staging import removed_on_failure, require_memory
 from twist_models.agent import Agent
 from twist_models.checkpoint import read_checkpoint, restore, save_checkpoint
 from twist_models.config import (
@@ -130,6 +132,32 @@ def behaviour_config(extra: dict[str, Any], preset: ActorCriticConfig) -> ActorC
                                critic=preset.critic)
 
 
+def _set_up(data: MatchingDataset, dataset: Path, out: Path, config: BaselineConfig,
+            dreamer_config: DreamerConfig, resume: bool, device: str
+            ) -> tuple[Dreamer, Iterator[dict[str, torch.Tensor]]]:
+    """The run folder, the model (resumed from ``latest.pt`` if there is one) and the
+    training windows."""
+    folder = RunFolder(out, "baseline", BaselineError, "a baseline run")
+    folder.open(config, resume, ("steps", "compile"), "--steps and --set compile")
+    torch.manual_seed(config.seed)
+    model = Dreamer(dreamer_config)
+    if folder.latest.exists():
+        checkpoint = read_checkpoint(folder.latest, kind="dreamer")
+        restore(checkpoint, model, dreamer_config, model.optimisers())
+    model.to_device(device)
+    model.compile_update(compile_mode(config.compile, torch.device(device)))
+    folder.write_config(config, dreamer=dreamer_config, dataset=Path(dataset))
+    sampler = SamplerConfig(length=config.length, batch_size=config.batch_size,
+                            view=config.view, keys=KEYS, holdout_every=config.holdout_every,
+                            split="train", seed=derived_seed(config.seed, int(model.step)))
+    try:
+        windows = iter(DataLoader(WindowDataset(dataset, sampler), batch_size=None,
+                                  num_workers=config.workers))
+    except TwistError as exc:
+        raise BaselineError(f"no training windows: {exc}") from None
+    return model, windows
+
+
 def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
                    config: BaselineConfig, resume: bool = False, device: str = "cpu",
                    on_progress: Callable[[Progress], None] | None = None) -> dict[str, Any]:
@@ -147,25 +175,15 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
     behaviour = behaviour_config(spec.extra, dreamer_config.actor_critic)
     dreamer_config = dataclasses.replace(dreamer_config, actor_critic=dataclasses.replace(
         behaviour, imag_starts=config.imag_starts))
-    folder = RunFolder(out, "baseline", BaselineError, "a baseline run")
-    folder.open(config, resume, ("steps", "compile"), "--steps and --set compile")
-    latest = folder.latest
-    torch.manual_seed(config.seed)
-    model = Dreamer(dreamer_config)
-    if latest.exists():
-        checkpoint = read_checkpoint(latest, kind="dreamer")
-        restore(checkpoint, model, dreamer_config, model.optimisers())
-    model.to_device(device)
-    model.compile_update(compile_mode(config.compile, torch.device(device)))
-    folder.write_config(config, dreamer=dreamer_config, dataset=Path(dataset))
-    sampler = SamplerConfig(length=config.length, batch_size=config.batch_size,
-                            view=config.view, keys=KEYS, holdout_every=config.holdout_every,
-                            split="train", seed=derived_seed(config.seed, int(model.step)))
-    try:
-        windows = iter(DataLoader(WindowDataset(dataset, sampler), batch_size=None,
-                                  num_workers=config.workers))
-    except TwistError as exc:
-        raise BaselineError(f"no training windows: {exc}") from None
+    problem = window_problem(data, config.length, config.view) or image_problem(data)
+    if problem is not None:
+        raise BaselineError(f"{str(dataset)!r}: {problem}")
+    require_memory(config.batch_size * config.length * int(np.prod(spec.image_shape)) * 4,
+                   f"a batch of {config.batch_size} windows of {config.length} steps (its "
+                   "images as float32 alone)")
+    with removed_on_failure(out):  # a refused set-up leaves no config or log behind
+        model, windows = _set_up(data, dataset, out, config, dreamer_config, resume, device)
+    latest = RunFolder(out, "baseline", BaselineError, "a baseline run").latest
     board = Board(Path(out))
     try:
         _train(model, windows, config, dreamer_config, latest, Path(out), board, device,

@@ -41,10 +41,12 @@ from twist_data.sampler import (
     WindowDataset,
     WindowSampler,
     heldout_episodes,
+    image_problem,
     resident_bytes,
     window_problem,
 )
 from twist_data.seeding import derived_seed
+from twist_data.staging import removed_on_failure, require_memory
 from twist_data.tasks import state_mirror
 from twist_models.agent import Agent
 from twist_models.augmentation import colour_jitter
@@ -194,10 +196,16 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
                                     depth=config.encoder_depth,
                                     layers=config.encoder_layers, pool=config.encoder_pool,
                                     first_stride=config.encoder_first_stride)
-    student_config = _check_output(out, config, student_config, resume)
+    spec = data.spec
+    require_memory(config.batch_size * (config.length + config.window_context)
+                   * int(np.prod(spec.image_shape)) * 4,
+                   f"a batch of {config.batch_size} windows of {config.length} steps (its "
+                   "images as float32 alone)")
     rank, world = _rank_and_world()
-    run = _Run(dataset_path, data, out, config, teacher_model, teacher_path, student_config,
-               torch_device, rank, world, rows)
+    with removed_on_failure(out):  # a refused set-up leaves no config, log or plot behind
+        student_config = _check_output(out, config, student_config, resume)
+        run = _Run(dataset_path, data, out, config, teacher_model, teacher_path,
+                   student_config, torch_device, rank, world, rows)
     try:
         return run.loop(on_progress, None if time_limit is None
                         else time.perf_counter() + time_limit)
@@ -218,14 +226,9 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
     problem = window_problem(data, config.length, config.view)
     if problem is not None:
         raise DistilError(f"{str(path)!r}: {problem}")
-    try:
-        for shard_start in data.shard_offsets[:-1]:
-            data.read_frames(np.array([shard_start]), np.array([0]),
-                             np.empty((1, *spec.image_shape), np.uint8))
-    except Exception as exc:  # zarr and the codecs raise assorted types for missing chunks
-        raise DistilError(f"dataset {str(path)!r} has no readable images "
-                          f"({type(exc).__name__}: {exc}); the student learns from images"
-                          ) from None
+    problem = image_problem(data)
+    if problem is not None:
+        raise DistilError(f"dataset {str(path)!r}: {problem}; the student learns from images")
     return data
 
 

@@ -34,9 +34,11 @@ import pandas as pd
 from twist_data.errors import ConfigError, TwistError
 from twist_data.randomisation import DR_PRESETS, dr_preset
 from twist_data.rerender import rerender_dataset
+from twist_data.staging import require_writable
 from twist_data.tasks import task_spec
 from twist_models.config import require_positive
 from twist_models.curves import figure
+from twist_models.device import resolve_device
 from twist_models.distillation import DISTIL_PRESETS, DistilConfig, distil_preset
 from twist_models.stages.baselines import BaselineConfig, train_baseline
 from twist_models.stages.collect import (
@@ -196,6 +198,8 @@ def run_reproduction(out: str | os.PathLike[str], config: ReportConfig, device: 
     """Run every stage of every (task, seed) that is not done yet, then aggregate: returns
     :func:`build_report`'s summary and writes ``results.csv``, ``report.md`` and ``iqm.png``."""
     out = Path(out)
+    resolve_device(device)
+    require_writable(out, "report folder")
     for task in config.tasks:
         for seed in config.seeds:
             _Pipeline(out / task / f"seed-{seed}", task, seed, config, device, on_stage).run()
