@@ -181,21 +181,24 @@ def _committed(shard: Path) -> int:
         return 0
 
 
+@pytest.mark.parametrize("failing", [1, 3])  # before the first commit, and after two
 def test_disk_full_drops_the_partial_episode_and_resume_continues(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failing: int) -> None:
     config = collect_preset("tiny")
     real_commit = ShardWriter._commit
 
-    def commit_fails_on_the_third(self: ShardWriter, n_episodes: int, n_steps: int) -> None:
-        if n_episodes == 3:
+    def commit_fails(self: ShardWriter, n_episodes: int, n_steps: int) -> None:
+        if n_episodes == failing:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         real_commit(self, n_episodes, n_steps)
 
-    monkeypatch.setattr(ShardWriter, "_commit", commit_fails_on_the_third)
-    with pytest.raises(CollectError, match=r"disk full while writing episode 2 .* 2 committed"):
+    monkeypatch.setattr(ShardWriter, "_commit", commit_fails)
+    with pytest.raises(CollectError, match=rf"disk full while writing episode {failing - 1} .* "
+                                           rf"{failing - 1} committed"):
         collect(tmp_path, config)
-    assert verify_dataset(tmp_path).ok
-    assert open_dataset(tmp_path).n_episodes == 2
+    report = verify_dataset(tmp_path)
+    assert report.ok and report.episodes == failing - 1
+    assert open_dataset(tmp_path).n_episodes == failing - 1
     monkeypatch.setattr(ShardWriter, "_commit", real_commit)
     summary = collect(tmp_path, config, resume=True)
     assert summary.episodes == 4 and verify_dataset(tmp_path).ok
