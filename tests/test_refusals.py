@@ -185,7 +185,7 @@ def test_evaluation_options_are_refused_before_its_folder_is_made(tmp_path: Path
         with pytest.raises(ConfigError, match=message):
             EvalConfig(**settings)
     config = EvalConfig(episodes=1, max_steps=2)
-    with pytest.raises(ConfigError, match=r"videos .* must be >= 0, got -1"):
+    with pytest.raises(ConfigError, match=r"episodes to film .* \(--video\) must be >= 0, got -1"):
         run_evaluation({"zero": "zero"}, config, [0], tmp_path / "eval", videos=-1)
     with pytest.raises(ConfigError, match="cannot be written in '/proc'"):
         run_evaluation({"zero": "zero"}, config, [0], UNWRITABLE)

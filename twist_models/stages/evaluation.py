@@ -579,8 +579,8 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
     if batch < 1 or workers < 1:
         raise ConfigError(f"batch and workers must be >= 1, got {batch} and {workers}")
     if videos < 0:
-        raise ConfigError(f"videos (episodes to film per agent and seed) must be >= 0, got "
-                          f"{videos}")
+        raise ConfigError(f"the episodes to film per agent and seed (--video) must be >= 0, "
+                          f"got {videos}")
     if against is not None and against not in agents:
         raise EvalError(f"the agent to pair against, {against!r}, is not among the agents "
                         f"({', '.join(agents)})")
