@@ -18,7 +18,7 @@ from twist_data.errors import ConfigError, TwistError
 from twist_data.export import export_hdf5, export_video
 from twist_data.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 from twist_data.reader import open_dataset
-from twist_data.staging import require_new_file
+from twist_data.staging import human_bytes, require_new_file
 from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import quick_problems, verify_dataset
@@ -41,14 +41,6 @@ def progress_bar(description: str) -> Iterator[Callable[[int, int], None]]:
             bar.update(task, completed=done, total=total)
 
         yield update
-
-
-def _human(n: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if abs(n) < 1024 or unit == "TiB":
-            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
-        n /= 1024
-    return str(n)
 
 
 @app.command()
@@ -76,8 +68,8 @@ def info(dataset: DatasetArg,
         ("state / action / physics dims",
          f"{summary['state_dim']} / {summary['action_dim']} / {summary['physics_dim']}"),
         ("DR parameters", ", ".join(summary["dr_params"]) or "-"),
-        ("bytes on disk", _human(summary["bytes_on_disk"])),
-        ("uncompressed", _human(summary["bytes_uncompressed"])),
+        ("bytes on disk", human_bytes(summary["bytes_on_disk"])),
+        ("uncompressed", human_bytes(summary["bytes_uncompressed"])),
         ("compression ratio", f"{summary['compression_ratio']:.2f}"
          if summary["compression_ratio"] else "-"),
     ]
@@ -346,8 +338,8 @@ def strip(
 
     with progress_bar("stripping") as update:
         strip_dataset(dataset, out_dir, weights_only if teacher else None, on_episode=update)
-    out.print(f"wrote {out_dir}: {_human(open_dataset(out_dir).disk_bytes())} "
-              f"(from {_human(open_dataset(dataset).disk_bytes())})", soft_wrap=True)
+    out.print(f"wrote {out_dir}: {human_bytes(open_dataset(out_dir).disk_bytes())} "
+              f"(from {human_bytes(open_dataset(dataset).disk_bytes())})", soft_wrap=True)
 
 
 @app.command()

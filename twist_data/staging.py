@@ -85,11 +85,12 @@ def require_memory(needed: float, what: str, available: int | None = None) -> No
     ``available`` bytes), naming both figures."""
     have = machine_memory() if available is None else available
     if needed > have:
-        raise ConfigError(f"{what} needs {_bytes(needed)} of memory; this machine has "
-                          f"{_bytes(have)}")
+        raise ConfigError(f"{what} needs {human_bytes(needed)} of memory; this machine has "
+                          f"{human_bytes(have)}")
 
 
-def _bytes(n: float) -> str:
+def human_bytes(n: float) -> str:
+    """``n`` bytes in B, KiB, MiB, GiB, TiB or PiB, one decimal."""
     for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
         if n < 1024 or unit == "PiB":
             return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
@@ -102,8 +103,8 @@ def require_disk(needed: float, path: Path, what: str) -> None:
     figures."""
     free = shutil.disk_usage(nearest_existing(Path(path))).free
     if needed > free:
-        raise ConfigError(f"{what} needs about {_bytes(needed)} of disk; "
-                          f"{str(nearest_existing(Path(path)))!r} has {_bytes(free)} free")
+        raise ConfigError(f"{what} needs about {human_bytes(needed)} of disk; "
+                          f"{str(nearest_existing(Path(path)))!r} has {human_bytes(free)} free")
 
 
 @contextmanager
