@@ -66,7 +66,8 @@ class DistilConfig:
     steps: int = 50_000
     """Student updates."""
     batch_size: int = 16
-    """Windows per update (the paper: 16)."""
+    """Windows per update (the paper gives none; DreamerV2's world model takes 50, which did
+    no better at equal updates: docs/results.md)."""
     length: int = 50
     """L, steps per window (the paper: 50)."""
     horizon: int = 15
