@@ -226,7 +226,8 @@ def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path) -> N
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
     blocker = tmp_path / "a-file"
     blocker.write_text("")
-    with pytest.raises(CollectError, match="cannot create output folder"):
+    with pytest.raises(CollectError, match=r"a-file/D. cannot be written: .*a-file. is a file, "
+                                           r"not a folder"):
         collect(blocker / "D", config)
 
 

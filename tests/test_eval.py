@@ -196,7 +196,8 @@ def test_bad_inputs_are_refused(gl, agents, tmp_path) -> None:
     empty.mkdir()
     (empty / "notes.txt").write_text("not an image")
     for args, message in (
-            (["--agent", str(agents["agent"]), "--episodes", "0"], "episodes must be >= 1"),
+            (["--agent", str(agents["agent"]), "--episodes", "0"],
+             "episodes must lie in [1, 100,000] per seed, got 0"),
             (["--agent", str(agents["other"]), "--task", "cartpole-balance"], "'cup-catch'"),
             (["--agent", str(agents["agent"]), "--backgrounds", str(empty), "--episodes", "1"],
              "no-images"),
