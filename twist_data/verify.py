@@ -130,8 +130,8 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
         report.notes.append(f"shard {name}: stripped of its images ({digests} episode digests "
                             "kept); twist-data render --reproduce rebuilds them")
     loaded: dict[str, np.ndarray] = {}
-    for key, _, _, committed in expected:
-        structure = _structure_problem(shard, key, expected)
+    for key, dtype, trailing, committed in expected:
+        structure = _structure_problem(shard, key, dtype, trailing, committed)
         if structure is not None:
             problem(structure, key)
             continue
@@ -177,11 +177,10 @@ def _expected_arrays(shard: ShardReader) -> list[tuple[str, Any, tuple[int, ...]
     return expected
 
 
-def _structure_problem(shard: ShardReader, key: str,
-                       expected: list[tuple[str, Any, tuple[int, ...], int]]) -> str | None:
+def _structure_problem(shard: ShardReader, key: str, dtype: Any, trailing: tuple[int, ...],
+                       committed: int) -> str | None:
     """What is wrong with array ``key`` before a byte of it is decoded: absent, another dtype or
-    shape, fewer rows than committed."""
-    _, dtype, trailing, committed = next(e for e in expected if e[0] == key)
+    shape, fewer rows than ``committed``."""
     try:
         arr = shard.array(key)
     except TwistError as exc:
@@ -206,19 +205,18 @@ def quick_problems(path: str | os.PathLike[str]) -> list[str]:
         except TwistError as exc:
             found.append(f"shard {p.name}: {exc}")
             continue
-        expected = _expected_arrays(shard)
-        for key, _, _, committed in expected:
-            structure = _structure_problem(shard, key, expected)
-            if structure is None:
-                gaps = shard.missing_chunks(key, 0, committed)
-                structure = f"{len(gaps)} chunk file(s) missing" if gaps else None
+        for key, dtype, trailing, committed in _expected_arrays(shard):
+            structure = _structure_problem(shard, key, dtype, trailing, committed)
+            gaps = shard.missing_chunks(key, 0, committed) if structure is None else []
+            if gaps:
+                structure = f"{len(gaps)} chunk file(s) missing"
             if structure is not None:
                 found.append(f"shard {shard.name}, {key}: {structure}")
             elif key == "data/image":  # each image file's own index: a few KiB, no frame
-                arr, per_file = shard.array(key), rows_per_file(shard.array(key))
-                missing = {a for a, _ in shard.missing_chunks(key, 0, committed)}
+                arr = shard.array(key)
+                per_file = rows_per_file(arr)
                 for a in range(0, committed, per_file):
-                    index = None if a in missing else _shard_index_problem(
+                    index = _shard_index_problem(
                         arr, shard.path / "data" / "image", a // per_file,
                         per_file * shard.spec.views)
                     if index:

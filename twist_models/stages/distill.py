@@ -550,14 +550,11 @@ class _Run:
                     or self._out_of_time()):
                 self._checkpoint(self.run_folder.latest)
             if self.updates % c.snapshot_every == 0:
-                self._checkpoint(self.out / f"student-{self.updates:08d}.pt")
-                self._bundle(self.out / f"agent-{self.updates:08d}.pt")
+                self._snapshot()
         self.seconds += time.perf_counter() - wall
         stopped_early = self.updates < c.steps or not first_stage_done
         if stopped_early and self.updates and self.updates % c.snapshot_every:
-            # Where a time limit stopped the run is a point of its learning curve too.
-            self._checkpoint(self.out / f"student-{self.updates:08d}.pt")
-            self._bundle(self.out / f"agent-{self.updates:08d}.pt")
+            self._snapshot()  # where a time limit stopped it is a point of its curve too
         student = self._checkpoint(self.out / FINAL_STUDENT)
         agent = self._bundle(self.out / AGENT)
         summary = DistilSummary(
@@ -644,6 +641,11 @@ class _Run:
                 sums, done, spent = {}, 0, 0.0
                 self._checkpoint(self.run_folder.latest)
         self.seconds += time.perf_counter() - wall
+
+    def _snapshot(self) -> None:
+        """The student and its agent bundle at this update count: a learning-curve point."""
+        self._checkpoint(self.out / f"student-{self.updates:08d}.pt")
+        self._bundle(self.out / f"agent-{self.updates:08d}.pt")
 
     def _out_of_time(self) -> bool:
         return self.deadline is not None and time.perf_counter() >= self.deadline
