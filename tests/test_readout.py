@@ -478,6 +478,89 @@ def test_colour_jitter_recolours_each_sample_alike_across_its_frames(monkeypatch
             assert abs(offset) <= augmentation.OFFSET + 1e-3
 
 
+def _centroids(image: torch.Tensor) -> torch.Tensor:
+    """Row and column of the brightness centroid of each frame: uint8 [B, N, H, W, 3] ->
+    [B, N, 2]."""
+    mass = image.float().sum(-1)
+    rows = torch.arange(mass.shape[-2], dtype=torch.float32).view(-1, 1)
+    cols = torch.arange(mass.shape[-1], dtype=torch.float32).view(1, -1)
+    total = mass.sum((-2, -1))
+    return torch.stack([(mass * rows).sum((-2, -1)) / total,
+                        (mass * cols).sum((-2, -1)) / total], -1)
+
+
+def test_camera_jitter_moves_each_sample_by_at_most_its_shift_every_frame_alike() -> None:
+    from twist_models.augmentation import camera_jitter
+
+    image = torch.zeros(400, 2, 64, 64, 3, dtype=torch.uint8)
+    image[:, 0, 20:30, 36:44] = 200  # a block on each of two frames, not where the other is
+    image[:, 1, 34:40, 24:32] = 100
+    unmoved = camera_jitter(image, 0.0, 0.0, torch.Generator().manual_seed(0))
+    assert torch.equal(unmoved, image)
+    moved = camera_jitter(image, 5.0, 0.0, torch.Generator().manual_seed(0))
+    assert moved.shape == image.shape and moved.dtype == torch.uint8
+    step = _centroids(moved) - _centroids(image)
+    assert step.abs().max() <= 5.0 + 0.02  # to rounding
+    assert step.amin((0, 1)).max() < -4.0 and step.amax((0, 1)).min() > 4.0  # both ways
+    torch.testing.assert_close(step[:, 0], step[:, 1], atol=0.02, rtol=0)  # frames alike
+    # A move keeps the block whole: its brightness is the same, only where it is changes.
+    torch.testing.assert_close(moved.float().sum((2, 3, 4)), image.float().sum((2, 3, 4)),
+                               rtol=1e-3, atol=0)
+
+
+def test_camera_jitter_rolls_a_line_by_at_most_its_roll_about_the_centre() -> None:
+    import math
+
+    from twist_models.augmentation import camera_jitter
+
+    image = torch.zeros(200, 1, 64, 64, 3, dtype=torch.uint8)
+    image[:, :, 31:33, 8:56] = 255  # a horizontal bar through the centre
+    rolled = camera_jitter(image, 0.0, 0.3, torch.Generator().manual_seed(1)).float()[:, 0, ..., 0]
+    rows = torch.arange(64.0).view(-1, 1) - 31.5
+    cols = torch.arange(64.0).view(1, -1) - 31.5
+    weight = rolled / rolled.sum((1, 2), keepdim=True)
+    slope = (weight * rows * cols).sum((1, 2)) / (weight * cols * cols).sum((1, 2))
+    angle = torch.atan(slope)
+    assert angle.abs().max() <= 0.3 + 0.02 and angle.abs().max() > 0.25
+    assert (angle > 0.1).any() and (angle < -0.1).any()
+    centre = _centroids(rolled[:, None, ..., None].expand(-1, 1, -1, -1, 3).to(torch.uint8))
+    assert (centre - 31.5).abs().max() < 0.6  # turned about the frame's centre
+    with pytest.raises(ConfigError, match=r"frame_roll must be at most 1\.5708 radians"):
+        distil_preset("tiny", "readout", frame_roll=math.pi)
+    with pytest.raises(ConfigError, match="frame_shift must be >= 0, got -1"):
+        distil_preset("tiny", "readout", frame_shift=-1)
+
+
+def test_the_camera_jitter_moves_training_frames_only(inputs, tmp_path: Path,
+                                                      monkeypatch) -> None:
+    dataset, teacher_path, _, _ = inputs
+    calls = []
+
+    def counted(image, shift, roll, generator):
+        calls.append((image.shape[0], shift, roll))
+        return real(image, shift, roll, generator)
+
+    real = distill_stage.camera_jitter
+    monkeypatch.setattr(distill_stage, "camera_jitter", counted)
+    config = distil_preset("tiny", "readout", frame_eval_every=2, frame_shift=4,
+                           frame_roll=0.05, frame_batch=8)
+    summary = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
+    # One call per update of the first stage, none for its two held-out evaluations.
+    assert calls == [(8, 4.0, 0.05)] * config.frame_steps
+    assert stored_config(tmp_path / "run") == config
+
+    def refused(*args, **kwargs):
+        raise AssertionError("a frame was jittered outside training")
+
+    monkeypatch.setattr(distill_stage, "camera_jitter", refused)
+    from twist_models import augmentation
+    monkeypatch.setattr(augmentation, "camera_jitter", refused)
+    agent = Agent.load(summary.agent)
+    image = np.random.default_rng(0).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    _, state = agent.act(image)
+    agent.act(image, state)
+
+
 def test_an_unknown_frame_augmentation_is_refused_naming_it() -> None:
     assert distil_preset("tiny", "readout", frame_augment="colour").frame_augment == "colour"
     with pytest.raises(ConfigError, match="frame_augment must be one of none, colour, got 'hue'"):

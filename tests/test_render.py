@@ -192,6 +192,64 @@ def test_config_validation_and_presets() -> None:
         DRConfig(light_range=(2.0, 1.0))
 
 
+#: Each per-factor evaluation preset and the view parameters (or, for physics, the episode's
+#: dynamics) that are its factor.
+FACTORS = {"heldout-camera": ("camera_shift", "camera_rotation"), "heldout-light": ("light",),
+           "heldout-physics": ()}
+
+
+@pytest.mark.parametrize("preset", sorted(FACTORS))
+def test_a_per_factor_preset_draws_heldouts_scene_and_changes_only_its_factor(preset: str) -> None:
+    def draws(name: str, seed: int) -> tuple[object, dict[str, np.ndarray]]:
+        sampler = DRSampler(dr_preset(name), np.full((5, 3), 0.5), views=2, n_backgrounds=10,
+                            max_offset=8)
+        dynamics = sampler.begin_episode(seed)
+        return dynamics, sampler.sample()
+
+    changed = set()
+    for seed in range(5):
+        (dynamics, params), (base_dynamics, base) = draws(preset, seed), draws("heldout", seed)
+        for key, value in params.items():
+            if key in FACTORS[preset]:
+                changed.add(key)
+            else:
+                np.testing.assert_array_equal(value, base[key], err_msg=f"{preset}: {key}")
+        if preset == "heldout-physics":
+            assert dynamics != base_dynamics
+        else:
+            assert dynamics == base_dynamics
+    assert all(not np.array_equal(params[k], base[k]) for k in FACTORS[preset])
+    assert changed == set(FACTORS[preset])
+    assert dr_preset("heldout-full") == dr_preset("heldout").replace(
+        **{f: getattr(dr_preset(p), f) for p in FACTORS for f in
+           ("light_range", "camera_shift", "camera_rotation", "friction_range", "mass_range")
+           if getattr(dr_preset(p), f) != getattr(dr_preset("heldout"), f)})
+
+
+@pytest.mark.parametrize("preset", ["heldout-camera", "heldout-light"])
+def test_a_per_factor_render_is_heldouts_with_that_factor_put_back(preset: str, gl: None) -> None:
+    physics = _state()
+    images = {}
+    for name in ("heldout", preset):
+        with DRRenderer("cartpole-balance", dr_preset(name), 32, 2) as r:
+            sampler = r.sampler(4)
+            sampler.begin_episode(4)
+            params = sampler.sample()
+            images[name] = r.render(physics, params)
+            nominal = {**params, **{k: v for k, v in _nominal_view(params).items()
+                                    if k in FACTORS[preset]}}
+            images[name, "put back"] = r.render(physics, nominal)
+    assert not np.array_equal(images[preset], images["heldout"])
+    np.testing.assert_array_equal(images[preset, "put back"], images["heldout"])
+
+
+def _nominal_view(params: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The camera and light parameters of an unmoved camera under nominal light."""
+    return {"light": np.ones_like(params["light"]),
+            "camera_shift": np.zeros_like(params["camera_shift"]),
+            "camera_rotation": np.zeros_like(params["camera_rotation"])}
+
+
 def _camouflage_sampler(share: float, grid: np.ndarray | None, seed: int = 0) -> DRSampler:
     config = DRConfig(low_contrast_share=share)
     return DRSampler(config, np.full((5, 3), 0.5), views=4, n_backgrounds=2, max_offset=8,

@@ -109,8 +109,11 @@ class DRConfig:
 
 _WIDE = DRConfig(background="wide", background_count=1024, resample="step")
 _CAMOUFLAGED_SHARE = 0.5
-_FULL = dict(light_range=(0.5, 1.5), camera_shift=0.05, camera_rotation=0.1,
-             friction_range=(0.5, 2.0), mass_range=(0.75, 1.25))
+_LIGHT = dict(light_range=(0.5, 1.5))
+_CAMERA = dict(camera_shift=0.05, camera_rotation=0.1)
+_PHYSICS = dict(friction_range=(0.5, 2.0), mass_range=(0.75, 1.25))
+_FULL = {**_LIGHT, **_CAMERA, **_PHYSICS}
+_HELDOUT = DRConfig(background="heldout", resample="episode")
 
 #: Named DR configurations. ``train``/``heldout`` are the paper's DMC setting (background and
 #: colours; re-sampled every step for collection, once per episode on held-out backgrounds for
@@ -125,6 +128,11 @@ _FULL = dict(light_range=(0.5, 1.5), camera_shift=0.05, camera_rotation=0.1,
 #: ``train-leaves`` adds dead leaves, a family with the statistics of photographs, for
 #: students that must read scenes in front of real photographs (one cartpole seed: 800.2
 #: against 752.5 in front of eight photographs, the same on held-out backgrounds);
+#: ``train-wide-full`` adds the ``-full`` factors to ``train-wide`` (a D re-rendered with it
+#: shows the student a moved camera and changed light; re-rendering keeps D's physics);
+#: ``heldout-camera``, ``heldout-light`` and ``heldout-physics`` add one ``-full`` factor
+#: each to ``heldout``, with every other draw the same as ``heldout``'s, so that a drop in
+#: return is that factor's alone;
 #: ``train-wide-episode`` is ``train-wide`` drawn once per episode and held, as every
 #: evaluation holds its scene, for windows whose recurrence sees what deployment shows (the
 #: paper randomises per step when collecting and does not say how the windows it distils
@@ -137,9 +145,13 @@ DR_PRESETS: dict[str, DRConfig] = {
     "train-contrast": DRConfig(background="train", resample="step",
                                low_contrast_share=_CAMOUFLAGED_SHARE),
     "train-wide-contrast": dataclasses.replace(_WIDE, low_contrast_share=_CAMOUFLAGED_SHARE),
-    "heldout": DRConfig(background="heldout", resample="episode"),
+    "train-wide-full": dataclasses.replace(_WIDE, **_FULL),
+    "heldout": _HELDOUT,
+    "heldout-camera": dataclasses.replace(_HELDOUT, **_CAMERA),
+    "heldout-light": dataclasses.replace(_HELDOUT, **_LIGHT),
+    "heldout-physics": dataclasses.replace(_HELDOUT, **_PHYSICS),
     "train-full": DRConfig(background="train", resample="step", **_FULL),
-    "heldout-full": DRConfig(background="heldout", resample="episode", **_FULL),
+    "heldout-full": dataclasses.replace(_HELDOUT, **_FULL),
     "none": DRConfig(background="none", colour_delta=0.0, resample="episode"),
 }
 

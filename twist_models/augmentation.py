@@ -1,4 +1,4 @@
-"""Image augmentation for the first stage's single frames.
+"""Image augmentation for the first stage's single frames: colours, and where the camera is.
 
 A read-out student loses the pole mostly in held-out scenes with pink, magenta or orange
 poles against similar hues or fine rings, and D's K renders per state show each pose in few
@@ -7,11 +7,19 @@ colours D never drew, while the geometry the read-out regresses (where the cart 
 are) stays exactly as rendered. Measured on cartpole at the ``quick`` budget it changes
 which scenes fail but not how many (docs/experiments.md, "Where the read-out student loses
 the pole"), so it is off by default.
+
+A real camera is never exactly where the simulator's is. :func:`camera_jitter` moves and
+rolls whole frames while the targets stay those of the unmoved scene, so that a read-out
+cannot take a position from where it falls in the frame and must read it against the scene
+(the rail, the floor), as DrQ's and RAD's random shifts do for pixel-based RL.
 """
 
 from __future__ import annotations
 
+import math
+
 import torch
+import torch.nn.functional as F
 
 #: Per-channel gain range and offset range (0-255 levels) of :func:`colour_jitter`.
 GAIN = (0.7, 1.3)
@@ -30,3 +38,29 @@ def colour_jitter(image: torch.Tensor, generator: torch.Generator) -> torch.Tens
     gain = GAIN[0] + (GAIN[1] - GAIN[0]) * torch.rand(shape, generator=generator)
     offset = OFFSET * (2 * torch.rand(shape, generator=generator) - 1)
     return (x * gain + offset).clamp_(0, 255).round_().to(torch.uint8)
+
+
+def camera_jitter(image: torch.Tensor, shift: float, roll: float,
+                  generator: torch.Generator) -> torch.Tensor:
+    """Move each sample of ``image`` uint8 [B, ..., H, W, 3] by up to ``shift`` pixels along
+    each image axis and roll it by up to ``roll`` radians about the frame's centre (each drawn
+    uniformly per sample; every frame of one sample alike), bilinearly, the border's pixels
+    filling what comes into view -> uint8, the same shape."""
+    b, (h, w) = image.shape[0], image.shape[-3:-1]
+    angle = roll * (2 * torch.rand(b, generator=generator) - 1)
+    offset = shift * (2 * torch.rand(b, 2, generator=generator) - 1)
+    cos, sin = torch.cos(angle), torch.sin(angle)
+    # affine_grid works in [-1, 1] coordinates: a pixel is 2 / side of them.
+    theta = torch.stack([torch.stack([cos, -sin * h / w, 2 * offset[:, 1] / w], -1),
+                         torch.stack([sin * w / h, cos, 2 * offset[:, 0] / h], -1)], 1)
+    frames = image.reshape(b, -1, h, w, 3)
+    n = frames.shape[1]
+    x = frames.permute(0, 1, 4, 2, 3).reshape(b, n * 3, h, w).float()
+    grid = F.affine_grid(theta, [b, n * 3, h, w], align_corners=False)
+    out = F.grid_sample(x, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    out = out.reshape(b, n, 3, h, w).permute(0, 1, 3, 4, 2).reshape(image.shape)
+    return out.round_().clamp_(0, 255).to(torch.uint8)
+
+
+#: The largest roll :func:`camera_jitter` may be asked for: a quarter turn.
+MAX_ROLL = math.pi / 2

@@ -24,6 +24,7 @@ from torch import nn
 
 from twist_data.errors import ConfigError
 from twist_data.sampler import SamplerConfig
+from twist_models.augmentation import MAX_ROLL
 from twist_models.config import (
     CNN_NORMS,
     CNN_POOLS,
@@ -190,6 +191,11 @@ class DistilConfig:
     """Augmentation of the first stage's frames: ``none`` or ``colour``
     (:func:`~twist_models.augmentation.colour_jitter`: channel order, gain and offset drawn
     per frame)."""
+    frame_shift: float = 0.0
+    """Largest move, in pixels along each image axis, of each first-stage frame (the targets
+    unmoved: :func:`~twist_models.augmentation.camera_jitter`; 0: none, the paper)."""
+    frame_roll: float = 0.0
+    """Largest roll, radians about the frame's centre, of each first-stage frame (0: none)."""
     frame_eval_every: int = 500
     """First-stage updates between held-out evaluations and checkpoints."""
     rare_states: float = 0.0
@@ -278,6 +284,10 @@ class DistilConfig:
         require_choice(self, "readout_weights", ("robust", "sensitivity", "frame"))
         require_choice(self, "readout_frames", ("auto", "typical", "all"))
         require_choice(self, "frame_augment", ("none", "colour"))
+        require_non_negative(self, "frame_shift", "frame_roll")
+        if self.frame_roll > MAX_ROLL:
+            raise ConfigError(f"frame_roll must be at most {MAX_ROLL:.4f} radians (a quarter "
+                              f"turn), got {self.frame_roll}")
         require_choice(self, "readout_mirror", READOUT_MIRRORS)
         if self.readout_mirror != "none" and not self.readout:
             raise ConfigError(f"readout_mirror={self.readout_mirror!r} averages a read-out "

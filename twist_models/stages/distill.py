@@ -49,7 +49,7 @@ from twist_data.seeding import derived_seed
 from twist_data.staging import removed_on_failure, require_memory
 from twist_data.tasks import state_mirror
 from twist_models.agent import Agent
-from twist_models.augmentation import colour_jitter
+from twist_models.augmentation import camera_jitter, colour_jitter
 from twist_models.checkpoint import (
     move_optimiser_state,
     read_checkpoint,
@@ -596,6 +596,9 @@ class _Run:
                 batch["state"][flip] = batch["state"][flip] * mirror
             if c.frame_augment == "colour":
                 batch["image"] = colour_jitter(batch["image"], jitter)
+            if c.frame_shift or c.frame_roll:
+                batch["image"] = camera_jitter(batch["image"], c.frame_shift, c.frame_roll,
+                                               jitter)
             batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
             with precision_autocast(c.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
