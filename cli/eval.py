@@ -28,6 +28,7 @@ from twist_models.stages.evaluation import (
     load_agent,
     run_evaluation,
 )
+from twist_models.stages.factors import evaluate_factors
 from twist_models.stages.learning_curve import FLOOR, ORACLE, evaluate_snapshots
 from twist_models.stages.learning_curve import snapshots as snapshot_agents
 from twist_models.statistics import format_paired
@@ -75,7 +76,11 @@ def main(
         help="With --snapshots: episodes over which each snapshot acts while the teacher's "
              "filter follows it on the states (closed-loop agreement; 0: none).")] = 3,
     task: Annotated[str | None, typer.Option(help="Task [the first agent's].")] = None,
-    dr: Annotated[str, typer.Option(help="DR preset of the scenes.")] = "heldout",
+    dr: Annotated[str, typer.Option(
+        help="DR preset of the scenes; several, comma-separated, evaluate every agent under "
+             "each on the same episodes and tabulate what each keeps of its return under the "
+             "first (factors.csv; e.g. heldout,heldout-camera,heldout-light,heldout-full).")
+    ] = "heldout",
     backgrounds: Annotated[Path | None, typer.Option(
         help="Folder of your own background images/videos.")] = None,
     episodes: Annotated[int, typer.Option(help="Episodes per seed.")] = 100,
@@ -121,13 +126,21 @@ def main(
                               posterior)
     else:
         agents = parse_agents(agent, device, posterior)
+    presets = parse_list(dr, str, "--dr")
+    if not presets:
+        raise ConfigError("--dr names no DR preset")
+    if len(presets) > 1 and (snapshots is not None or paired_with or video
+                             or save_trajectories):
+        raise ConfigError(f"several DR presets ({dr}) pair each agent with itself under "
+                          f"{presets[0]}; --snapshots, --paired-with, --video and "
+                          "--save-trajectories take one preset")
     if task is None:
         task = agents_setting(agents, "task")
         if task is None:
             raise ConfigError("no agent names its task; pass --task")
     if action_repeat is None:
         action_repeat = agents_setting(agents, "action_repeat") or DEFAULT_ACTION_REPEAT
-    config = EvalConfig(task=task, dr=dr, episodes=episodes, max_steps=max_steps,
+    config = EvalConfig(task=task, dr=presets[0], episodes=episodes, max_steps=max_steps,
                         action_repeat=action_repeat, supersample=supersample,
                         posterior=posterior,
                         backgrounds=None if backgrounds is None else str(backgrounds))
@@ -155,6 +168,15 @@ def main(
         out.print(table)
         print_json(json.loads(curve.to_json(orient="records")), indent=None)
         return
+    if len(presets) > 1:
+        with progress_bar(quiet, "evaluating", describe) as report:
+            factors = evaluate_factors(agents, config, presets, seed_list, out_dir, device,
+                                       resume, batch, workers,
+                                       on_progress=None if report is None
+                                       else lambda done, total: report((done, total)))
+        out.print(factor_table_view(factors, presets, task, episodes, len(seed_list)))
+        print_json(json.loads(factors.to_json(orient="records")), indent=None)
+        return
     with progress_bar(quiet, "evaluating", describe) as report:
         summary = run_evaluation(agents, config, seed_list, out_dir, video, device,
                                  against=paired_with, resume=resume, batch=batch,
@@ -177,6 +199,28 @@ def main(
         table.add_row(*cells)
     out.print(table)
     print_json(summary, indent=None)
+
+
+def factor_table_view(factors: pd.DataFrame, presets: list[str], task: str, episodes: int,
+                      seeds: int) -> Table:
+    """The factor table as the terminal shows it: an agent per row, a preset per column, each
+    cell the mean return ± its standard error and, beside the first, its share of the first
+    preset's return and the paired difference."""
+    table = Table(title=f"{task}, {episodes} episodes x {seeds} seeds under each DR preset; "
+                        f"share of {presets[0]}'s return, paired difference (better)")
+    table.add_column("agent")
+    for name in presets:
+        table.add_column(name)
+    for agent, rows in factors.groupby("agent", sort=False):
+        cells = [agent]
+        for row in rows.itertuples():
+            cell = f"{row.mean:.1f} ± {row.sem:.1f}"
+            if row.dr != presets[0]:
+                cell += (f"\n{row.ratio:.2f}, {row.paired:+.1f} ± {row.paired_sem:.1f} "
+                         f"({int(row.better)}/{row.episodes})")
+            cells.append(cell)
+        table.add_row(*cells)
+    return table
 
 
 def describe(progress: tuple[int, int]) -> tuple[int, int, str]:

@@ -205,7 +205,11 @@ def test_bad_inputs_are_refused(gl, agents, tmp_path) -> None:
             (["--agent", str(agents["agent"]), "--paired-with", "nobody"],
              "'nobody', is not among the agents"),
             (["--agent", str(agents["agent"]), "--posterior", "median"],
-             "unknown --posterior 'median'")):
+             "unknown --posterior 'median'"),
+            (["--agent", str(agents["agent"]), "--dr", "heldout,heldout-camera",
+              "--paired-with", "x"], "--paired-with, --video and --save-trajectories take one"),
+            (["--agent", str(agents["agent"]), "--dr", "heldout,nowhere", "--episodes", "1"],
+             "unknown DR preset 'nowhere'")):
         result = cli(*args)
         assert result.returncode == 2, (args, result.stderr)
         assert message in result.stderr and "Traceback" not in result.stderr, result.stderr
