@@ -24,6 +24,10 @@ def main(
     agents: Annotated[str, typer.Option(help=f"Comma-separated agents of {', '.join(AGENTS)}.")
                       ] = ",".join(AGENTS),
     dr: Annotated[str, typer.Option(help="DR preset of the evaluation scenes.")] = "heldout",
+    factors: Annotated[str, typer.Option(
+        help="Comma-separated DR presets every agent is also evaluated under, on the same "
+             "episodes (e.g. heldout-camera,heldout-light,heldout-full); report.md then "
+             "shows what each agent keeps of its --dr return under each.")] = "",
     episodes: Annotated[int, typer.Option(help="Evaluation episodes per agent and seed.")] = 10,
     max_steps: Annotated[int | None, typer.Option(help="Agent steps per evaluation episode.")
                          ] = None,
@@ -40,6 +44,7 @@ def main(
     config = ReportConfig(tasks=tuple(parse_list(tasks, str, "--tasks")),
                           seeds=tuple(parse_list(seeds, int, "--seeds")), preset=preset,
                           agents=tuple(parse_list(agents, str, "--agents")), eval_dr=dr,
+                          factor_drs=tuple(parse_list(factors, str, "--factors")),
                           eval_episodes=episodes, eval_max_steps=max_steps, frames=frames,
                           updates=updates)
     if table_only:

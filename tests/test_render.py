@@ -20,16 +20,17 @@ from twist_data.backgrounds import (
     leaves,
     procedural_bank,
 )
-from twist_data.errors import BackgroundError, ConfigError, PhysicsStateError
+from twist_data.errors import BackgroundError, CheckpointError, ConfigError, PhysicsStateError
 from twist_data.randomisation import DR_PRESETS, DRConfig, DRSampler, dr_preset
 from twist_data.reader import open_dataset
 from twist_data.render import DRRenderer
 from twist_data.render_process import RenderProcess, RenderProcessError
-from twist_data.rerender import check_reproduction, rerender_dataset
+from twist_data.rerender import check_reproduction, render_blocks, rerender_dataset
 from twist_data.rollout import random_policy, record_episode, simulated_spec
 from twist_data.tasks import TaskEnv
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
+from twist_models.teacher import find_teacher
 
 
 @pytest.fixture
@@ -556,6 +557,34 @@ def test_rerendering_chosen_episodes_renders_them_as_a_full_rerender_does(
     with pytest.raises(ConfigError, match="dataset has 2 episodes; index 2 is out of range"):
         rerender_dataset(sim_dataset, tmp_path / "bad", dr_preset("heldout"), episodes=[0, 2])
     assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.parametrize("preset", ["train-wide-full", "heldout-camera"])
+def test_a_d_rerendered_under_a_preset_records_it_and_finds_its_sources_teacher(
+        collected_tiny: Path, tmp_path: Path, preset: str) -> None:
+    out = rerender_dataset(collected_tiny, tmp_path / "re", dr_preset(preset), views=1,
+                           episodes=[0])
+    block = render_blocks(open_dataset(out).spec)[-1]
+    assert DRConfig.from_json(block["config"]) == dr_preset(preset)
+    assert reproduce_check(out)
+    # A re-rendered D holds no teacher of its own: it distils with its source's.
+    assert find_teacher(out) == find_teacher(collected_tiny)
+    # Without its source beside it or where it was recorded, none is found, and it says so.
+    moved = tmp_path / "elsewhere" / "re"
+    moved.parent.mkdir()
+    out.rename(moved)
+    assert find_teacher(moved) == find_teacher(collected_tiny)  # still where recorded
+    for attributes in moved.glob("*/zarr.json"):  # as if its source had been deleted
+        text = attributes.read_text()
+        assert str(collected_tiny) in text
+        attributes.write_text(text.replace(str(collected_tiny), str(tmp_path / "gone")))
+    with pytest.raises(CheckpointError, match="expected one final teacher under"):
+        find_teacher(moved)
+
+
+def reproduce_check(dataset: Path) -> bool:
+    """Whether the D's first steps rebuild from their stored DR draws exactly."""
+    return check_reproduction(open_dataset(dataset), n_steps=4) == []
 
 
 def test_rerender_add_views_keeps_the_original_views(sim_dataset: Path, tmp_path: Path) -> None:

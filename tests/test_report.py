@@ -156,9 +156,18 @@ def test_frames_override_sets_how_long_the_teacher_learns() -> None:
 def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_path: Path) -> None:
     config = ReportConfig(tasks=("cartpole-balance",), seeds=(3,), preset="tiny",
                           eval_episodes=1, eval_max_steps=10)
-    first = run_reproduction(tmp_path, dataclasses.replace(config, agents=("twist",)))
+    first = run_reproduction(tmp_path, dataclasses.replace(config, agents=("twist",),
+                                                           factor_drs=("heldout-light",)))
     assert set(first["per_task"]["cartpole-balance"]) == {"oracle", "twist"}
     root = tmp_path / "cartpole-balance" / "seed-3"
+    # Every agent also met the same episode under the factor preset.
+    lit = pd.read_csv(root / "eval-heldout-light" / "episodes.csv")
+    base = pd.read_csv(root / "eval" / "episodes.csv")
+    assert sorted(lit["agent"]) == ["oracle", "twist"]
+    assert list(lit["episode_seed"]) == list(base["episode_seed"])
+    assert {(f["agent"], f["dr"]) for f in first["factors"]} == {
+        (a, d) for a in ("oracle", "twist") for d in ("heldout", "heldout-light")}
+    assert "| cartpole-balance | TWIST | " in (tmp_path / "report.md").read_text()
     twist_stamp = (root / "twist" / "agent.pt").stat().st_mtime_ns
     summary = run_reproduction(tmp_path, config)  # the other columns join the same runs
     assert (root / "twist" / "agent.pt").stat().st_mtime_ns == twist_stamp
@@ -226,6 +235,40 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
     assert run_reproduction(tmp_path, config) == summary
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
     assert build_report(tmp_path, config) == summary
+
+
+def test_the_factor_table_pools_each_tasks_seeds_and_pairs_within_them(tmp_path: Path) -> None:
+    # Two seeds of one task: twist loses 100 and 300 under the moved camera on the same
+    # episodes; the oracle loses nothing.
+    returns = {("heldout", 0): {"oracle": [900, 910], "twist": [800, 600]},
+               ("heldout", 1): {"oracle": [920, 930], "twist": [700, 900]},
+               ("heldout-camera", 0): {"oracle": [900, 910], "twist": [700, 300]},
+               ("heldout-camera", 1): {"oracle": [920, 930], "twist": [600, 800]}}
+    for (dr, seed), by_agent in returns.items():
+        folder = tmp_path / "cartpole-balance" / f"seed-{seed}" / (
+            "eval" if dr == "heldout" else f"eval-{dr}")
+        folder.mkdir(parents=True)
+        pd.DataFrame([{"agent": agent, "kind": "student", "seed": seed, "episode": e,
+                       "episode_seed": 100 * seed + e, "return": r, "steps": 10}
+                      for agent, values in by_agent.items() for e, r in enumerate(values)]
+                     ).to_csv(folder / "episodes.csv", index=False)
+    config = ReportConfig(tasks=("cartpole-balance",), seeds=(0, 1), eval_episodes=2,
+                          factor_drs=("heldout-camera",))
+    summary = build_report(tmp_path, config)
+    factors = pd.read_csv(tmp_path / "factors.csv").set_index(["agent", "dr"])
+    twist = factors.loc[("twist", "heldout-camera")]
+    differences = [-100, -300, -100, -100]
+    assert twist["paired"] == pytest.approx(np.mean(differences))
+    assert twist["paired_sem"] == pytest.approx(np.std(differences, ddof=1) / 2)
+    assert twist["ratio"] == pytest.approx(2400 / 3000) and twist["episodes"] == 4
+    assert factors.loc[("oracle", "heldout-camera"), "paired"] == 0.0
+    assert len(summary["factors"]) == 4
+    assert "| cartpole-balance | TWIST | 750.0 | 600.0: 0.80, -150.0 ± 50.0 (0/4) |" in (
+        tmp_path / "report.md").read_text()
+    with pytest.raises(ConfigError, match="must differ from the others and from eval_dr"):
+        ReportConfig(factor_drs=("heldout-camera", "heldout"))
+    with pytest.raises(ConfigError, match="unknown DR preset 'tilted'"):
+        ReportConfig(factor_drs=("tilted",))
 
 
 def test_cli_refuses_bad_input_without_traceback(tmp_path: Path) -> None:

@@ -12,7 +12,8 @@ from typing import Any
 
 import torch
 
-from twist_data.errors import CheckpointError, CheckpointMismatchError
+from twist_data.errors import CheckpointError, CheckpointMismatchError, TwistError
+from twist_data.reader import open_dataset
 from twist_models.checkpoint import (
     Checkpoint,
     read_checkpoint,
@@ -102,8 +103,12 @@ def teacher_from_checkpoint(checkpoint: Checkpoint, state_dim: int | None = None
 
 def find_teacher(out: str | os.PathLike[str]) -> Path:
     """The final teacher of the collector run in ``out`` (the one ``twist-distil`` uses by
-    default); an error lists the candidates when there are several or none."""
+    default), or, for a D re-rendered from another (``twist-data render``), that one's; an
+    error lists the candidates when there are several or none."""
     found = sorted((Path(out) / "collect").glob(f"*/{FINAL_TEACHER}"))
+    source = _rendered_from(Path(out))
+    if not found and source is not None:
+        return find_teacher(source)
     if len(found) != 1:
         have = ", ".join(str(p) for p in found) or "none"
         raise CheckpointError(f"expected one final teacher under "
@@ -111,3 +116,18 @@ def find_teacher(out: str | os.PathLike[str]) -> Path:
                               "explicitly")
     read_checkpoint(found[0], kind="teacher")
     return found[0]
+
+
+def _rendered_from(dataset: Path) -> Path | None:
+    """The folder ``dataset`` was re-rendered from, where it records one that still holds a
+    dataset: as recorded (relative to the working folder then) or beside ``dataset``."""
+    try:
+        recorded = open_dataset(dataset).spec.extra.get("rerendered_from")
+    except TwistError:
+        return None
+    if not recorded:
+        return None
+    for candidate in (Path(recorded), dataset.parent / Path(recorded).name):
+        if candidate.resolve() != dataset.resolve() and (candidate / "collect").is_dir():
+            return candidate
+    return None

@@ -20,6 +20,7 @@ task, every agent's return minus TWIST's on the same evaluation episodes, pooled
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
 import shutil
@@ -55,6 +56,7 @@ from twist_models.stages.evaluation import (
     paired_episodes,
     run_evaluation,
 )
+from twist_models.stages.factors import FACTOR_TABLE, factor_table
 from twist_models.statistics import (
     format_paired,
     performance_profile,
@@ -147,6 +149,11 @@ class ReportConfig:
     """Agents to train and evaluate (the oracle always is)."""
     eval_dr: str = "heldout"
     """DR preset of the evaluation scenes (the paper: held-out backgrounds)."""
+    factor_drs: tuple[str, ...] = ()
+    """DR presets every agent is also evaluated under, on the same episodes as ``eval_dr``
+    (e.g. ``heldout-camera``, ``heldout-light``: one factor each); ``report.md`` then shows
+    what each agent keeps of its ``eval_dr`` return under each (:mod:`~twist_models.stages.
+    factors`)."""
     eval_episodes: int = 10
     """Evaluation episodes per agent and seed (the paper: 100)."""
     eval_max_steps: int | None = None
@@ -161,6 +168,7 @@ class ReportConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "tasks", tuple(self.tasks))
         object.__setattr__(self, "seeds", tuple(self.seeds))
+        object.__setattr__(self, "factor_drs", tuple(self.factor_drs))
         agents = ("oracle", *(a for a in self.agents if a != "oracle"))
         object.__setattr__(self, "agents", agents)
         if not self.tasks or not self.seeds:
@@ -174,9 +182,13 @@ class ReportConfig:
         if self.preset not in COLLECT_PRESETS or self.preset not in DISTIL_PRESETS:
             raise ConfigError(f"unknown preset {self.preset!r}; valid presets are: "
                               f"{', '.join(COLLECT_PRESETS)}")
-        if self.eval_dr not in DR_PRESETS:
-            raise ConfigError(f"unknown DR preset {self.eval_dr!r}; valid presets are: "
-                              f"{', '.join(DR_PRESETS)}")
+        for name in (self.eval_dr, *self.factor_drs):
+            if name not in DR_PRESETS:
+                raise ConfigError(f"unknown DR preset {name!r}; valid presets are: "
+                                  f"{', '.join(DR_PRESETS)}")
+        if len({self.eval_dr, *self.factor_drs}) != 1 + len(self.factor_drs):
+            raise ConfigError(f"each factor DR preset must differ from the others and from "
+                              f"eval_dr ({self.eval_dr}), got {','.join(self.factor_drs)}")
         require_positive(self, "eval_episodes")
         for name in ("frames", "updates", "eval_max_steps"):
             if getattr(self, name) is not None:
@@ -229,13 +241,15 @@ class _Pipeline:
         for name in self.config.agents[1:]:
             # A reference agent is only evaluated; run_evaluation sizes it for the task.
             agents[name] = name if name in REFERENCE_AGENTS else self._train(name)
-        eval_dir = self.root / "eval"
-        episodes = eval_dir / "episodes.csv"
-        # Done only if it covers every agent asked for now (a report may add agents later).
-        if not episodes.exists() or not set(agents) <= set(pd.read_csv(episodes)["agent"]):
-            self._announce("evaluating")
-            c = self.config
-            eval_config = EvalConfig(task=self.task, dr=c.eval_dr, episodes=c.eval_episodes,
+        c = self.config
+        for dr in (c.eval_dr, *c.factor_drs):
+            eval_dir = self.root / eval_folder(dr, c)
+            episodes = eval_dir / "episodes.csv"
+            # Done only if it covers every agent asked for now (a report may add agents later).
+            if episodes.exists() and set(agents) <= set(pd.read_csv(episodes)["agent"]):
+                continue
+            self._announce("evaluating" if dr == c.eval_dr else f"evaluating under {dr}")
+            eval_config = EvalConfig(task=self.task, dr=dr, episodes=c.eval_episodes,
                                      max_steps=c.eval_max_steps,
                                      action_repeat=self._collect_config().action_repeat)
             run_evaluation(agents, eval_config, [self.seed], eval_dir, device=self.device,
@@ -293,14 +307,20 @@ class _Pipeline:
         return clean
 
 
+def eval_folder(dr: str, config: ReportConfig) -> str:
+    """The folder of a (task, seed) that holds its evaluation under DR preset ``dr``:
+    ``eval`` for the report's own scenes, ``eval-<preset>`` for a factor's."""
+    return "eval" if dr == config.eval_dr else f"eval-{dr}"
+
+
 # -- aggregation ------------------------------------------------------------------------------
 def collect_episodes(out: str | os.PathLike[str],
-                     config: ReportConfig | None = None) -> pd.DataFrame:
+                     config: ReportConfig | None = None, folder: str = "eval") -> pd.DataFrame:
     """One row per evaluation episode (:data:`EPISODE_RESULT_COLUMNS`), read from every
-    ``<task>/seed-<s>/eval/episodes.csv`` under ``out`` (only ``config``'s tasks and seeds
-    when given)."""
+    ``<task>/seed-<s>/<folder>/episodes.csv`` under ``out`` (only ``config``'s tasks and
+    seeds when given)."""
     frames = []
-    for path in sorted(Path(out).glob("*/seed-*/eval/episodes.csv")):
+    for path in sorted(Path(out).glob(f"*/seed-*/{folder}/episodes.csv")):
         task, seed = path.parents[2].name, int(path.parents[1].name.removeprefix("seed-"))
         if config is not None and (task not in config.tasks or seed not in config.seeds):
             continue
@@ -428,6 +448,43 @@ def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) 
     return "\n".join(lines) + "\n"
 
 
+def report_factors(out: Path, config: ReportConfig, episodes: pd.DataFrame) -> pd.DataFrame:
+    """Per task, the factor table (:func:`~twist_models.stages.factors.factor_table`) of the
+    evaluations under ``config.eval_dr`` (``episodes``) and each factor preset, pooled over
+    seeds, with a ``task`` column first."""
+    presets = [config.eval_dr, *config.factor_drs]
+    every = pd.concat([episodes.assign(dr=config.eval_dr)] + [
+        collect_episodes(out, config, eval_folder(dr, config)).assign(dr=dr)
+        for dr in config.factor_drs])
+    tables = [factor_table(rows, presets).assign(task=task)
+              for task, rows in every.groupby("task", sort=False)]
+    if not tables:
+        raise ReportError("no evaluation results to tabulate under the factor presets")
+    table = pd.concat(tables, ignore_index=True)
+    return table[["task", *table.columns.drop("task")]]
+
+
+def factor_markdown(factors: pd.DataFrame, config: ReportConfig) -> str:
+    """The factor table in Markdown: per task and agent, the mean return under
+    ``eval_dr`` and, under each factor preset, the share of it the agent keeps and the
+    paired difference (episodes better / pairs)."""
+    presets = [config.eval_dr, *config.factor_drs]
+    lines = [f"Each agent under one factor at a time, on the same episodes as {config.eval_dr}: "
+             f"mean return, then the share of its {config.eval_dr} return and the paired "
+             "difference ± its standard error (episodes better / pairs).", "",
+             f"| Task | Agent | {' | '.join(presets)} |", "|" + "---|" * (len(presets) + 2)]
+    for (task, agent), rows in factors.groupby(["task", "agent"], sort=False):
+        cells = []
+        for row in rows.itertuples():
+            cell = f"{row.mean:.1f}"
+            if row.dr != config.eval_dr:
+                cell += (f": {row.ratio:.2f}, {row.paired:+.1f} ± {row.paired_sem:.1f} "
+                         f"({int(row.better)}/{row.episodes})")
+            cells.append(cell)
+        lines.append(f"| {task} | {AGENTS.get(agent, agent)} | {' | '.join(cells)} |")
+    return "\n".join(lines) + "\n"
+
+
 def plot_iqm(summary: dict[str, Any], out: str | os.PathLike[str]) -> Path:
     """The aggregate IQM of normalised returns per agent with its 95% interval (Fig. 2)."""
     iqm = summary["normalised_iqm"]
@@ -477,7 +534,13 @@ def build_report(out: str | os.PathLike[str], config: ReportConfig | None = None
     summary = aggregate(results)
     summary["paired"] = paired_with(episodes)
     results.to_csv(out / "results.csv", index=False)
-    (out / "report.md").write_text(markdown_table(summary, config))
+    text = markdown_table(summary, config)
+    if config is not None and config.factor_drs:
+        factors = report_factors(out, config, episodes)
+        factors.to_csv(out / FACTOR_TABLE, index=False)
+        summary["factors"] = json.loads(factors.to_json(orient="records"))
+        text += "\n" + factor_markdown(factors, config)
+    (out / "report.md").write_text(text)
     plot_iqm(summary, out / "iqm.png")
     plot_profiles(summary, out / "profiles.png")
     return summary
