@@ -413,15 +413,43 @@ def test_a_readout_student_reads_one_frame(inputs) -> None:
         dataclasses.replace(config, read=(0, 1))
 
 
-def test_a_teacher_that_hides_components_is_refused(inputs, tmp_path: Path) -> None:
-    dataset = inputs[0]
+def test_a_velocity_the_teacher_never_reads_is_neither_paired_nor_read(inputs,
+                                                                         tmp_path: Path) -> None:
+    dataset, _, _, rows = inputs
+    state = rows.state.numpy().copy()
+    state[:, 4] = np.random.default_rng(0).normal(size=len(state))  # the rate of nothing
+    is_first = rows.steps == rows.episode_start
+    config = pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth", hidden=(4,))
+    assert config.velocities == ((3, 0),) and config.hidden == (4,) and config.read == (0, 1, 2)
+    with pytest.raises(ConfigError, match=re.escape("state_hidden=[4]' never reads it")):
+        pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth")
+    # A teacher of positions only: its student reads them and derives nothing.
+    assert pair_velocities(state, is_first, LAYOUT, MLPConfig(), hidden=(3, 4)).velocities == ()
+    with pytest.raises(ConfigError, match=r"nothing to read from an image \(hidden: \[0, 1, 2"):
+        pair_velocities(state, is_first, LAYOUT, MLPConfig(), hidden=(0, 1, 2, 3, 4))
+    # Such a teacher's filter, handed the exact positions and the paired velocity, embeds
+    # what it embeds of D's true state, whatever the hidden velocity is there.
     base = teacher_preset("tiny", 5, 1)
     hidden = dataclasses.replace(base, world_model=dataclasses.replace(
-        base.world_model, state_hidden=(3, 4)))
-    path = save_teacher(tmp_path / "hidden.pt", Teacher(hidden))
-    with pytest.raises(DistilError, match=r"never reads components \[3, 4\]"):
-        distil(dataset, tmp_path / "run", distil_preset("tiny", "readout"), teacher=path)
-    assert not (tmp_path / "run").exists()
+        base.world_model, state_hidden=(4,)))
+    torch.manual_seed(2)
+    teacher = Teacher(hidden).eval()
+    config = dataclasses.replace(config, encoder=hidden.world_model.state_mlp)
+    student = Student(student_preset("tiny", teacher.config, readout=config))
+    copy_teacher_filter(student, teacher.world_model)
+    steps = int(np.flatnonzero(rows.episode_start == rows.episode_start[0]).size)
+    truth = torch.as_tensor(state[:steps])[None].float()
+    is_first_window = torch.zeros(truth.shape[:2], dtype=torch.bool)
+    is_first_window[0, 0] = True
+    rebuilt = student.readout.window_state(truth[..., :3], is_first_window)
+    assert torch.equal(rebuilt[..., 4], torch.zeros_like(rebuilt[..., 4]))
+    with torch.no_grad():
+        torch.testing.assert_close(student._embed_state(rebuilt)[0, 1:],
+                                   teacher.world_model.embed(truth)[0, 1:], atol=1e-4, rtol=1e-4)
+    # And the distiller takes such a teacher, recording what its student leaves out.
+    path = save_teacher(tmp_path / "hidden.pt", teacher)
+    summary = distil(dataset, tmp_path / "run", distil_preset("tiny", "readout"), teacher=path)
+    assert Agent.load(summary.agent).config.student.readout.hidden == (4,)
 
 
 def test_the_sensitivity_weighted_readout_loss_by_hand() -> None:

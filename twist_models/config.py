@@ -350,6 +350,9 @@ class ReadOutConfig:
     velocity on D (1 / the time between frames, up to the integrator's lag)."""
     encoder: MLPConfig = field(default_factory=MLPConfig)
     """The teacher's state encoder (copied with its weights and kept fixed)."""
+    hidden: tuple[int, ...] = ()
+    """State components the teacher never reads (its ``state_hidden``): neither read nor
+    derived, handed on as 0, as the teacher's own encoder sees them."""
     mirror: tuple[float, ...] = ()
     """Per component of ``read``, the sign it takes when the view is mirrored left to right
     (the task's ``TaskSpec.mirror``): given, each image is read as the mean of its own reading
@@ -370,10 +373,11 @@ class ReadOutConfig:
             raise ConfigError(f"lean must lie in (0, 2) for the reading's map to stay "
                               f"monotone, got {self.lean}")
         derived = [v[0] for v in self.velocities]
-        every = [*self.read, *derived]
+        every = [*self.read, *derived, *self.hidden]
         if sorted(every) != list(range(self.state_dim)):
-            raise ConfigError(f"read {list(self.read)} and derived {derived} components must "
-                              f"cover the state's {self.state_dim} components exactly once")
+            raise ConfigError(f"read {list(self.read)}, derived {derived} and hidden "
+                              f"{list(self.hidden)} components must cover the state's "
+                              f"{self.state_dim} components exactly once")
         for pair in self.angles:
             if len(pair) != 2 or not set(pair) <= set(self.read):
                 raise ConfigError(f"an angle pair must be two read components, got {pair}")

@@ -77,23 +77,25 @@ def wrapped(angle: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
 
 def pair_velocities(states: np.ndarray, is_first: np.ndarray,
                     layout: tuple[tuple[str, int], ...], encoder: MLPConfig,
-                    task: str = "this task") -> ReadOutConfig:
+                    task: str = "this task", hidden: tuple[int, ...] = ()) -> ReadOutConfig:
     """Measure on D which read component each velocity is the rate of.
 
     ``states`` [N, S] and ``is_first`` [N] are consecutive steps of D's training episodes;
     ``layout`` is D's state layout: components of blocks named ``velocity`` are derived, the
-    rest read. Each velocity is paired with the difference (over successive steps of one
-    episode) of a read component, or of a unit-circle pair's angle, that correlates best with
-    it, which must reach :data:`MIN_PAIRING`; its gain is the least-squares factor."""
+    rest read, except the ``hidden`` ones, which the teacher never reads (its
+    ``state_hidden``) and the student need not either. Each velocity is paired with the
+    difference (over successive steps of one episode) of a read component, or of a
+    unit-circle pair's angle, that correlates best with it, which must reach
+    :data:`MIN_PAIRING`; its gain is the least-squares factor."""
     if not layout:
         raise ConfigError(f"the dataset of {task} declares no state layout; the readout recipe "
                           "needs to know which state components are velocities")
     names = [name for name, size in layout for _ in range(size)]
-    derived = [i for i, name in enumerate(names) if name == "velocity"]
-    read = [i for i, name in enumerate(names) if name != "velocity"]
-    if not derived or not read:
-        raise ConfigError(f"the state layout of {task} ({list(layout)}) needs both velocity and "
-                          "other blocks for the readout recipe")
+    derived = [i for i, name in enumerate(names) if name == "velocity" and i not in hidden]
+    read = [i for i, name in enumerate(names) if name != "velocity" and i not in hidden]
+    if not read:
+        raise ConfigError(f"the state layout of {task} ({list(layout)}) leaves the readout "
+                          f"recipe nothing to read from an image (hidden: {sorted(hidden)})")
     states = states.astype(np.float64)
     angles = unit_circle_pairs(states, read)
     in_pairs = {i for pair in angles for i in pair}
@@ -110,7 +112,9 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
         if scores[best] < MIN_PAIRING:
             raise ConfigError(f"velocity component {v} of {task} is the rate of no component "
                               f"one image shows (best correlation {scores[best]:.2f} with "
-                              f"component(s) {list(best)}, needs {MIN_PAIRING})")
+                              f"component(s) {list(best)}, needs {MIN_PAIRING}); a teacher "
+                              f"collected with --set 'teacher.world_model.state_hidden=[{v}]' "
+                              "never reads it, and its read-out student need not either")
         taken = {tuple(pair[1:]): pair[0] for pair in velocities}
         if best in taken:
             raise ConfigError(f"velocity components {taken[best]} and {v} of {task} pair "
@@ -119,7 +123,8 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
         gains.append(float(difference @ target / max(difference @ difference, 1e-12)))
         velocities.append((v, *best))
     return ReadOutConfig(state_dim=states.shape[1], read=tuple(read), angles=tuple(angles),
-                         velocities=tuple(velocities), gains=tuple(gains), encoder=encoder)
+                         velocities=tuple(velocities), gains=tuple(gains), encoder=encoder,
+                         hidden=tuple(sorted(hidden)))
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:

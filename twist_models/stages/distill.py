@@ -243,12 +243,9 @@ def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher,
     mirror signs of what it reads where ``mirror`` (``readout_mirror``) asks for them, and
     how far it leans the angles it reads (``readout_lean``)."""
     wm = teacher.config.world_model
-    if wm.state_hidden:
-        raise DistilError(f"the readout recipe hands the teacher the whole state it read; this "
-                          f"teacher never reads components {list(wm.state_hidden)} "
-                          "(state_hidden)")
     readout = pair_velocities(rows.state.numpy(), rows.steps == rows.episode_start,
-                              data.spec.state_layout, wm.state_mlp, data.spec.task)
+                              data.spec.state_layout, wm.state_mlp, data.spec.task,
+                              hidden=wm.state_hidden)
     readout = dataclasses.replace(readout, lean=lean)
     if mirror == "none":
         return readout
