@@ -10,6 +10,7 @@ import typer
 
 from twist_cli.common import new_app, parse_settings, print_json, progress_bar, run_app
 from twist_data.errors import ConfigError
+from twist_data.randomisation import TRAINING_DR
 from twist_data.tasks import DEFAULT_TASK
 from twist_models.device import resolve_device
 from twist_models.stages.collect import (
@@ -48,7 +49,8 @@ def main(
     ] = None,
     views: Annotated[int | None, typer.Option("--views", help="K renders per step [2].")] = None,
     image_size: Annotated[int | None, typer.Option(help="Render side in pixels [64].")] = None,
-    dr: Annotated[str | None, typer.Option(help="DR preset of the renders [train].")] = None,
+    dr: Annotated[str | None, typer.Option(
+        help=f"DR preset of the renders [{TRAINING_DR}].")] = None,
     backgrounds: Annotated[Path | None, typer.Option(
         help="Folder of images/videos to use as backgrounds.")] = None,
     seed: Annotated[int | None, typer.Option(help="Run seed [0].")] = None,

@@ -6,7 +6,8 @@
 # student from D offline and evaluate teacher (on states), student (on images) and the
 # zero-action floor on held-out backgrounds.
 # PRESET=tiny gives a smoke run of seconds; SEED=1 (or 2) collects with another seed;
-# EVAL_EPISODES sets the held-out episodes (10); DEVICE=cuda trains and acts on a GPU (a CUDA
+# EVAL_EPISODES sets the held-out episodes (10); DR=train-wide-full renders D with a moved
+# camera and changed light (and trains the teacher under the physics factors); DEVICE=cuda trains and acts on a GPU (a CUDA
 # torch must then be installed, e.g. an active environment: scripts/gpu.sh shows how). Running
 # it again resumes an interrupted run.
 # OUT/timings.json gets each stage's seconds and, to compare machines, the seconds of one eager
@@ -25,13 +26,14 @@ OUT="${1:-runs/demo}"
 TASK="${TASK:-cartpole-balance}"
 PRESET="${PRESET:-quick}"
 SEED="${SEED:-0}"
+DR="${DR:-train-wide}"
 DEVICE="${DEVICE:-cpu}"
 mkdir -p "$OUT"
 stage machine_speed python benchmarks/teacher_update_modes.py --preset "$PRESET" --task "$TASK" \
       --variants eager --rounds 5 > "$OUT/machine-speed.json"
 RESUME=()
 if [[ -d "$OUT/dataset/collect" ]]; then RESUME=(--resume); fi
-stage collect twist-collect --task "$TASK" --preset "$PRESET" --seed "$SEED" \
+stage collect twist-collect --task "$TASK" --preset "$PRESET" --seed "$SEED" --dr "$DR" \
       --device "$DEVICE" --out "$OUT/dataset" "${RESUME[@]}"
 check_dataset() {  # what twist-data does with D: inspect, verify, re-render, export, draw
   rm -rf "$OUT/heldout"
