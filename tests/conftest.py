@@ -81,6 +81,31 @@ def load_script(path: Path) -> ModuleType:
     return module
 
 
+def run_command(module: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """A ``twist-*`` command run in this process through its own error boundary
+    (:func:`twist_cli.common.run_app`), as ``python -m twist_cli.<module> ARGS`` runs it but
+    without starting an interpreter: its exit code and what it wrote to stderr. An error the
+    boundary does not turn into one line propagates, failing the test as a traceback would."""
+    import contextlib
+    import importlib
+    import io
+
+    from twist_cli.common import run_app
+
+    app = importlib.import_module(f"twist_cli.{module}").app
+    stderr, code = io.StringIO(), 0
+    argv = sys.argv
+    sys.argv = [f"twist-{module}", *args]
+    try:
+        with contextlib.redirect_stderr(stderr):
+            run_app(app)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    finally:
+        sys.argv = argv
+    return subprocess.CompletedProcess([module, *args], code, "", stderr.getvalue())
+
+
 def run_script(script: str, out: Path, **settings: str) -> subprocess.CompletedProcess[str]:
     """``bash scripts/<script> <out>`` with ``settings`` in its environment, in the virtual
     environment that runs these tests (so the script installs nothing)."""

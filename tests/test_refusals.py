@@ -181,6 +181,8 @@ def test_evaluation_options_are_refused_before_its_folder_is_made(tmp_path: Path
     for settings, message in (({"max_steps": -1}, "max_steps must be >= 1, got -1"),
                               ({"backgrounds": str(tmp_path / "missing")},
                                "background directory .* does not exist"),
+                              ({"backgrounds": str(tmp_path)},
+                               "background directory .* has no images or videos"),
                               ({"episodes": MAX_EPISODES + 1}, "episodes must lie in")):
         with pytest.raises(ConfigError, match=message):
             EvalConfig(**settings)

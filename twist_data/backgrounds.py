@@ -277,9 +277,9 @@ def _square(image: np.ndarray, size: int) -> np.ndarray:
     return cv2.resize(crop, (size, size), interpolation=interpolation)
 
 
-def directory_bank(directory: str | Path, size: int, max_frames_per_video: int = 64) -> BackgroundBank:
-    """Every image (and up to ``max_frames_per_video`` evenly spaced frames of every video)
-    in ``directory``, sorted by file name, as ``size``² RGB textures."""
+def background_files(directory: str | Path) -> list[Path]:
+    """The image and video files of a background folder, sorted by name; a folder that does
+    not exist or holds none is refused naming it."""
     root = Path(directory)
     if not root.is_dir():
         raise BackgroundError(f"background directory {str(root)!r} does not exist or is not a folder")
@@ -288,6 +288,14 @@ def directory_bank(directory: str | Path, size: int, max_frames_per_video: int =
     if not files:
         raise BackgroundError(f"background directory {str(root)!r} has no images or videos "
                               f"({', '.join(IMAGE_SUFFIXES + VIDEO_SUFFIXES)})")
+    return files
+
+
+def directory_bank(directory: str | Path, size: int, max_frames_per_video: int = 64) -> BackgroundBank:
+    """Every image (and up to ``max_frames_per_video`` evenly spaced frames of every video)
+    in ``directory``, sorted by file name, as ``size``² RGB textures."""
+    root = Path(directory)
+    files = background_files(root)
     textures, names = [], []
     for path in files:
         frames = (_video_frames(path, max_frames_per_video) if path.suffix.lower() in VIDEO_SUFFIXES

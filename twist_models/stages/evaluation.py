@@ -29,7 +29,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from twist_data.errors import ConfigError, TwistError
+from twist_data.backgrounds import background_files
+from twist_data.errors import BackgroundError, ConfigError, TwistError
 from twist_data.export import episode_strip, write_video
 from twist_data.randomisation import DR_PRESETS, DRConfig, dr_preset
 from twist_data.seeding import evaluation_episode_seed
@@ -96,9 +97,11 @@ class EvalConfig:
             require_positive(self, "supersample")
         if self.max_steps is not None and self.max_steps < 1:
             raise ConfigError(f"max_steps must be >= 1, got {self.max_steps}")
-        if self.backgrounds is not None and not Path(self.backgrounds).is_dir():
-            raise ConfigError(f"background directory {self.backgrounds!r} does not exist or is "
-                              "not a folder")
+        if self.backgrounds is not None:  # an empty folder too, before any episode starts
+            try:
+                background_files(self.backgrounds)
+            except BackgroundError as exc:
+                raise ConfigError(str(exc)) from None
 
     def dr_config(self) -> DRConfig:
         """The preset (with user backgrounds), drawn once per episode."""
