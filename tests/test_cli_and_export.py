@@ -87,7 +87,7 @@ def test_hdf5_export_holds_every_episode(small_dataset: Path, tmp_path: Path) ->
 def test_help_keeps_the_bracketed_defaults() -> None:
     # Rich markup read "[random per step]" as a style tag and dropped it from the help.
     for module, note in (("twist_cli.baseline", "[random per step]"),
-                         ("twist_cli.collect", "[train]"),
+                         ("twist_cli.collect", "[train-wide]"),
                          ("twist_cli.eval", "[the first agent's]")):
         result = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True,
                                 text=True, env={**os.environ, "COLUMNS": "200"})
