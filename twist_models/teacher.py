@@ -106,8 +106,8 @@ def find_teacher(out: str | os.PathLike[str]) -> Path:
     default), or, for a D re-rendered from another (``twist-data render``), that one's; an
     error lists the candidates when there are several or none."""
     found = sorted((Path(out) / "collect").glob(f"*/{FINAL_TEACHER}"))
-    source = _rendered_from(Path(out))
-    if not found and source is not None:
+    source = None if found else _rendered_from(Path(out))  # D opened only when it holds none
+    if source is not None:
         return find_teacher(source)
     if len(found) != 1:
         have = ", ".join(str(p) for p in found) or "none"

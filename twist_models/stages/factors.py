@@ -48,9 +48,9 @@ def evaluate_factors(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
     configs = [dataclasses.replace(config, dr=name) for name in presets]  # validates each
     out = Path(out)
     total = len(presets) * len(agents) * len(seeds) * config.episodes
-    for i, preset_config in enumerate(configs):
+    for i, (name, preset_config) in enumerate(zip(presets, configs, strict=True)):
         offset = i * total // len(presets)
-        run_evaluation(agents, preset_config, seeds, out / presets[i], device=device,
+        run_evaluation(agents, preset_config, seeds, out / name, device=device,
                        resume=resume, batch=batch, workers=workers,
                        on_progress=None if on_progress is None
                        else lambda done, _, offset=offset: on_progress(offset + done, total))
