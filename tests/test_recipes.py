@@ -275,23 +275,6 @@ def test_the_recipe_travels_with_the_run_and_the_bundle(
     assert set(RECIPES) >= {"paper", "dense"}
 
 
-def test_a_posterior_of_images_alone_travels_with_the_bundle(
-        inputs: tuple[Path, Path, Teacher], tmp_path: Path) -> None:
-    dataset, teacher_path, _ = inputs
-    config = distil_preset("tiny", frames=2, posterior_reads_h=False)
-    summary = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
-    assert not stored_config(tmp_path / "run").posterior_reads_h
-    agent = Agent.load(summary.agent)
-    assert agent.student.config.posterior_reads_h is False
-    rssm = agent.student.rssm
-    embed = torch.randn(3, rssm.obs_out[0].in_features - rssm.config.deter)
-    with torch.no_grad():  # what it acts on is the images' alone
-        torch.testing.assert_close(rssm.posterior_logits(torch.randn(3, rssm.config.deter), embed),
-                                   rssm.posterior_logits(torch.randn(3, rssm.config.deter), embed))
-    with pytest.raises(ConfigError, match="posterior_reads_h=False"):
-        distil_preset("tiny", "readout", posterior_reads_h=False)
-
-
 def test_a_frame_stage_without_frame_terms_is_refused() -> None:
     with pytest.raises(ConfigError, match="frame_steps=5"):
         dataclasses.replace(distil_preset("tiny"), frame_steps=5)

@@ -406,9 +406,6 @@ class StudentConfig:
     frames: int = 1
     """Images the posterior reads per step: the current one and the ``frames - 1`` before it,
     each encoded alone by the CNN (1: the paper's single image)."""
-    posterior_reads_h: bool = True
-    """Whether the posterior reads h_t beside the images (True: the paper's q(z_t | h_t, o_t);
-    False: q(z_t | o_t), so that an error in the student's h never passes into its z)."""
     state_dim: int = 0
     """Length of the privileged state a linear head reads from the posterior's image input,
     a training target of the ``dense`` recipe (0: no head, the paper's student; acting never
@@ -420,9 +417,6 @@ class StudentConfig:
     def __post_init__(self) -> None:
         require_positive(self, "action_dim", "frames")
         require_non_negative(self, "state_dim")
-        if self.readout is not None and not self.posterior_reads_h:
-            raise ConfigError("a read-out student's posterior is the teacher's, which reads h; "
-                              "got posterior_reads_h=False")
         if self.readout is not None and self.frames != 1:
             raise ConfigError(f"a read-out student reads one frame per step (its velocities "
                               f"are differences of successive read-outs), got frames={self.frames}")
@@ -487,13 +481,11 @@ def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
                    frames: int = 1, norm: str = "none", state_head: bool = False,
                    readout: ReadOutConfig | None = None,
                    depth: int | None = None, layers: int | None = None,
-                   pool: str = "flatten", first_stride: int = 2,
-                   posterior_reads_h: bool = True) -> StudentConfig:
+                   pool: str = "flatten", first_stride: int = 2) -> StudentConfig:
     """The student of size preset ``name`` (its CNN, normalised by ``norm``, ``depth``
     channels wide and its first ``layers`` convolutions alone if given, the first of stride
     ``first_stride``, its last map pooled by ``pool``) for ``teacher``,
-    whose RSSM it copies, reading ``frames`` images per step (and h, if
-    ``posterior_reads_h``), with a read-out head of the
+    whose RSSM it copies, reading ``frames`` images per step, with a read-out head of the
     teacher's state if ``state_head``, reading the state as ``readout`` pairs it if given."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
@@ -503,7 +495,7 @@ def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
                               depth=cnn.depth if depth is None else depth,
                               encoder_kernels=cnn.encoder_kernels[:layers])
     return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,
-                         cnn=cnn, frames=frames, posterior_reads_h=posterior_reads_h,
+                         cnn=cnn, frames=frames,
                          state_dim=teacher.world_model.state_dim if state_head else 0,
                          readout=readout)
 

@@ -112,10 +112,6 @@ class DistilConfig:
     frames: int = 1
     """Images the student's posterior reads per step, each encoded alone: the current one and
     the ``frames - 1`` before it (1: the paper's single image; 2 shows it motion)."""
-    posterior_reads_h: bool = True
-    """Whether the student's posterior reads its h beside the images (True: the paper's;
-    False: the images alone, so that an error in its h cannot pass into its z; with one image
-    it then cannot read a velocity: use ``frames`` >= 2; not in the paper)."""
     encoder_norm: str = "none"
     """Normalisation in the student's CNN: ``none`` (DreamerV2's, the paper's) or ``layer``
     (see :class:`~twist_models.config.CNNConfig`)."""
@@ -270,9 +266,6 @@ class DistilConfig:
                               f"stage; got frames={self.frames}, state_weight="
                               f"{self.state_weight}, frame_post_weight={self.frame_post_weight}, "
                               f"copy_dynamics={self.copy_dynamics}")
-        if self.readout and not self.posterior_reads_h:
-            raise ConfigError("a read-out student's posterior is the teacher's, which reads h; "
-                              "got posterior_reads_h=False")
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)

@@ -68,13 +68,9 @@ FILTER_CHUNK = 5
 class RSSM(nn.Module):
     """Prior p(z_t | h_t), posterior q(z_t | h_t, e_t), h_t = GRU(h_{t-1}, z_{t-1}, a_t)."""
 
-    def __init__(self, config: RSSMConfig, action_dim: int, embed_dim: int,
-                 posterior_reads_h: bool = True) -> None:
+    def __init__(self, config: RSSMConfig, action_dim: int, embed_dim: int) -> None:
         super().__init__()
         self.config = config
-        # False: q(z_t | e_t). The head keeps its h columns (so a teacher's head copies in
-        # whole) and reads zeros there, so an error in h cannot pass into z.
-        self.posterior_reads_h = posterior_reads_h
         c = config
         latent = c.stoch * c.classes
         self.img_in = nn.Sequential(nn.Linear(latent + action_dim, c.hidden), nn.ELU())
@@ -152,9 +148,7 @@ class RSSM(nn.Module):
     def posterior_logits(self, deter: torch.Tensor, embed: torch.Tensor) -> torch.Tensor:
         """q(z_t | h_t, e_t) as logits [..., S, C] from ``deter`` [..., D] and ``embed``
         [..., E]: the posterior head alone, for any h (a per-frame target reads it at the
-        teacher's h). A posterior that does not read h reads zeros in its place."""
-        if not self.posterior_reads_h:
-            deter = torch.zeros_like(deter)
+        teacher's h)."""
         return self._logits(self.obs_out(torch.cat([deter, embed], -1)))
 
     # -- sequences --------------------------------------------------------------------------

@@ -31,8 +31,7 @@ class Student(nn.Module):
                         if config.readout is not None else None)
         embed_dim = (self.readout.out_dim if self.readout is not None
                      else self.encoder.out_dim * config.frames)
-        self.rssm = RSSM(config.rssm, config.action_dim, embed_dim,
-                         posterior_reads_h=config.posterior_reads_h)
+        self.rssm = RSSM(config.rssm, config.action_dim, embed_dim)
         if self.readout is not None:  # the teacher's filter (copy_teacher_filter), kept fixed
             self.readout.encoder.requires_grad_(False)
             self.rssm.requires_grad_(False)

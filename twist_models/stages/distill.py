@@ -195,8 +195,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
                                     if rows is not None else None,
                                     depth=config.encoder_depth,
                                     layers=config.encoder_layers, pool=config.encoder_pool,
-                                    first_stride=config.encoder_first_stride,
-                                    posterior_reads_h=config.posterior_reads_h)
+                                    first_stride=config.encoder_first_stride)
     spec = data.spec
     require_memory(config.batch_size * (config.length + config.window_context)
                    * int(np.prod(spec.image_shape)) * 4,
