@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCUMENTS = [ROOT / "README.md", ROOT / "datasets.md", *sorted((ROOT / "docs").glob("*.md"))]
+DOCUMENTS = [ROOT / "README.md", ROOT / "datasets.md", *sorted((ROOT / "docs").glob("*.md")),
+             *sorted((ROOT / "research").glob("*.md"))]
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 #: A spelled-out ordinal, recognised by its ending ("...th", "...st", ...) or written in digits.
 ORDINAL = r"(?:(?:[a-z]+-)?[a-z]+(?:st|nd|rd|th)|\d+(?:st|nd|rd|th))"

@@ -87,7 +87,7 @@ def _spectrum_slope(image: np.ndarray) -> float:
 
 def test_dead_leaves_have_the_amplitude_spectrum_of_photographs() -> None:
     """Photographs' amplitude falls about as 1/f (slopes -1.1 to -1.5 measured on eight at
-    256 px, docs/experiments.md); smooth textures fall faster (clouds about -1.8). Leaves
+    256 px, research/log.md); smooth textures fall faster (clouds about -1.8). Leaves
     that leave the ground bare, or blur too much, fall as fast as clouds."""
     slopes = [_spectrum_slope(leaves(np.random.default_rng([2, i]), 128)) for i in range(8)]
     assert -1.6 < float(np.median(slopes)) < -1.0, slopes

@@ -120,11 +120,11 @@ _HELDOUT = DRConfig(background="heldout", resample="episode")
 #: evaluation); the ``-full`` variants add the manipulation factors (light, camera, friction,
 #: mass); ``train-contrast`` camouflages the body in half of the training views (not in the
 #: paper: the held-out scenes the read-out student loses are those where a lean changes the
-#: fewest pixel levels, docs/experiments.md), ``train-wide-contrast`` the same on
+#: fewest pixel levels, research/log.md), ``train-wide-contrast`` the same on
 #: ``train-wide``'s bank; ``train-wide`` draws from 1,024 textures of five
 #: families instead of 128 of three (not in the paper: on cup-catch its read-out student
 #: scored 714.1 against 585.3 on held-out backgrounds and 351.2 against 135.0 on a
-#: photograph; on cartpole about the same as with ``train``, docs/experiments.md);
+#: photograph; on cartpole about the same as with ``train``, research/log.md);
 #: ``train-leaves`` adds dead leaves, a family with the statistics of photographs, for
 #: students that must read scenes in front of real photographs (one cartpole seed: 800.2
 #: against 752.5 in front of eight photographs, the same on held-out backgrounds);

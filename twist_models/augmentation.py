@@ -5,7 +5,7 @@ poles against similar hues or fine rings, and D's K renders per state show each 
 colour combinations. Colour jitter re-colours whole frames, so every pose is also seen in
 colours D never drew, while the geometry the read-out regresses (where the cart and pole
 are) stays exactly as rendered. Measured on cartpole at the ``quick`` budget it changes
-which scenes fail but not how many (docs/experiments.md, "Where the read-out student loses
+which scenes fail but not how many (research/log.md, "Where the read-out student loses
 the pole"), so it is off by default.
 
 A real camera is never exactly where the simulator's is. :func:`camera_jitter` moves and

@@ -163,14 +163,14 @@ class DistilConfig:
     (``TaskSpec.mirror``): ``none``; ``average``, each image read as the mean of its own
     reading and its mirror image's, mirrored back (acting and windows; twice the CNN passes);
     ``augment``, that, and the first stage trains on each frame mirrored with probability 1/2,
-    its state mirrored with it (not in the paper; docs/experiments.md); ``auto``:
+    its state mirrored with it (not in the paper; research/log.md); ``auto``:
     :data:`AUTO_MIRROR` where the task declares its mirror, ``none`` elsewhere."""
     readout_lean: float = 1.0
     """How much further from its centre (upright on cartpole) a read-out student hands each
     angle it reads to the teacher's filter than it reads it (``ReadOutConfig.lean``; 1: as
     read); any ``steps`` of Eq. 3/4 train through it. The ``readout`` recipe's 1.25 was
     chosen on held-out scenes of another evaluation seed than the reported one, among 1,
-    1.15, 1.25, 1.35 and 1.5 (not in the paper; docs/experiments.md)."""
+    1.15, 1.25, 1.35 and 1.5 (not in the paper; research/log.md)."""
     readout_first_velocity: str = "zero"
     """Where a read-out student's velocities at a training window's first step come from, in
     mid-episode: ``read`` (the ``readout`` recipe's), the difference with the frame before
@@ -367,7 +367,7 @@ RECIPES: dict[str, dict[str, Any]] = {
 #: costs ~1/20 of a ``quick`` update on windows (36 against ~1.5 per second on the 2-core CPU,
 #: bfloat16); the ``dense`` recipe's held-out per-frame agreement still improved at 3,000; the
 #: read-out student's held-out return still rose from 15,000 to 30,000 to 45,000 on every
-#: seed, and its training loss still falls (docs/experiments.md, "Where the read-out student
+#: seed, and its training loss still falls (research/log.md, "Where the read-out student
 #: loses the pole"); 45,000 take ~22 minutes on one thread at ``quick`` size.
 FRAME_STEPS = {"dense": {"paper": 20_000, "quick": 10_000, "tiny": 4},
                "readout": {"paper": 90_000, "quick": 45_000, "tiny": 4}}

@@ -285,7 +285,7 @@ def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resum
     changed = (["the student's sizes differ"] if before is not None
                and (stored is None or not same_student(stored, student)) else [])
     # frame_steps may grow on resume: the first stage's loss still falls where a preset stops
-    # it, and continuing costs only the added updates (docs/experiments.md).
+    # it, and continuing costs only the added updates (research/log.md).
     folder.open(config, resume, ("steps", "frame_steps", "compile"),
                 "--steps and --set frame_steps, compile",
                 also=changed)
@@ -653,7 +653,7 @@ class _Run:
     def _bundle(self, path: Path) -> Path:
         # Every snapshot is deployable too: the return need not rise with the updates (it fell
         # from 559 to 403 between 800 and 2,000 in one run while the latents kept improving;
-        # docs/experiments.md, more updates), so the update count is worth choosing
+        # research/log.md, more updates), so the update count is worth choosing
         # by evaluating the snapshots on episodes other than the reported ones.
         if self.writes:
             info = {**self.data.spec.image_agent_info(), "dataset": str(self.dataset_path),

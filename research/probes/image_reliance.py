@@ -11,7 +11,7 @@ over all steps and over the second half of each window. A student that reads the
 loses much of its agreement when the images are wrong; one that does not has learned to
 follow its h (and through it the teacher's past actions) instead.
 
-Prints one JSON line per condition. ``python experiments/image_reliance.py DATASET RUN
+Prints one JSON line per condition. ``python research/probes/image_reliance.py DATASET RUN
 TEACHER [--windows 64] [--length 50]`` (RUN: a ``twist-distil`` output folder).
 """
 

@@ -15,7 +15,7 @@ training episodes, and scores on held-out episodes (every ``--holdout-every``-th
 The teacher's own features are the baseline measured in the same run. The first
 ``--burn-in`` steps of each window are skipped while both filters settle.
 
-Prints one JSON line. ``python experiments/latent_state_readout.py DATASET STUDENT TEACHER
+Prints one JSON line. ``python research/probes/latent_state_readout.py DATASET STUDENT TEACHER
 [--batches 30]`` (STUDENT: a ``student.pt`` of twist-distil; TEACHER: its ``teacher.pt``).
 """
 

@@ -9,7 +9,7 @@ batches of ``--batch`` random frames and views, and reports held-out accuracy ev
 baseline; ``layer``: ``CNNConfig.norm="layer"``). Held-out frames come from every
 ``--holdout-every``-th episode, as in ``twist-distil``.
 
-Prints one JSON line. ``python experiments/lean_probe.py DATASET [--steps 800]``
+Prints one JSON line. ``python research/probes/lean_probe.py DATASET [--steps 800]``
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ beside ``action_rmse_of_mean`` (predicting the training frames' mean state).
 ``--supervised-only`` skips the other encoders; ``--norm layer`` probes the layer-normalised
 CNN (``--set encoder_norm=layer`` in ``twist-distil``).
 
-Prints JSON lines. ``python experiments/image_state_probe.py DATASET [--agent AGENT]
+Prints JSON lines. ``python research/probes/image_state_probe.py DATASET [--agent AGENT]
 [--steps 300] [--preset quick] [--within I:LOW:HIGH] [--near I:LOW:HIGH] [--every N]
 [--supervised-only] [--norm layer]``
 """

@@ -11,7 +11,7 @@ training: they stand for the real scenes a student never saw.
 Without scikit-image (``pip install scikit-image``; not a dependency of the package) only
 matplotlib's photograph is written, and the script says so.
 
-``python experiments/photo_folder.py OUT``
+``python research/probes/photo_folder.py OUT``
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ true one (RMSE, and the share of the true velocity's variance it explains).
 A ceiling near the teacher's return says the derivation costs nothing and the student's gap
 lies in its read-out; a ceiling near the student's says the derivation caps it.
 
-``python experiments/readout_ceiling.py AGENT TEACHER DATASET [--noise 0.01] [--episodes
+``python research/probes/readout_ceiling.py AGENT TEACHER DATASET [--noise 0.01] [--episodes
 30] [--dr heldout]``; prints one JSON line.
 """
 

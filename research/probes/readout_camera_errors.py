@@ -9,7 +9,7 @@ ones (every read component within ``TYPICAL_SPREADS`` of its median), as the dis
 frames for all agents.
 
 Prints one JSON line: {"AGENT on DATASET": [error, typical error]}. ``python
-experiments/readout_camera_errors.py --dataset runs/c0/dataset --dataset runs/c0/dataset-full
+research/probes/readout_camera_errors.py --dataset runs/c0/dataset --dataset runs/c0/dataset-full
 --agent wide=runs/c0/ro/agent.pt --agent full=runs/c0/ro-full/agent.pt [--frames 2048]``
 """
 

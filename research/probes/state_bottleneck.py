@@ -9,7 +9,7 @@ student on cartpole-balance:
 ``train DATASET OUT``: a CNN (the ``quick`` preset's, layer-normalised, bfloat16 autocast)
 with a linear head regresses the cart's position and the pole's sine on D's training frames
 within ``--within`` of upright (cosine at least that), each standardised over those frames
-(the target under which the near-upright lean was learned, docs/experiments.md);
+(the target under which the near-upright lean was learned, research/log.md);
 ``--all-frames`` trains on every frame with a Huber loss to read the cosine as well (in the
 sine's scaling), so that the angle is known on the whole circle. Every
 ``--every`` updates it prints the held-out RMSE of both, and the sine's RMSE on frames within
@@ -17,7 +17,7 @@ sine's scaling), so that the angle is known on the whole circle. Every
 standardisation; plain tensors, loaded with ``weights_only``).
 
 ``policy``: the agent ``twist-eval`` imports (``--agent state_bottleneck:policy`` with
-``experiments`` on ``PYTHONPATH``), built from ``TWIST_BOTTLENECK_CNN`` (the file ``train``
+``research/probes`` on ``PYTHONPATH``), built from ``TWIST_BOTTLENECK_CNN`` (the file ``train``
 wrote) and ``TWIST_BOTTLENECK_TEACHER`` (the teacher checkpoint): each step it reads x and
 sin θ from the image, sets cos θ = sqrt(1 - sin² θ) (the pole above horizontal) and the
 velocities to 0 (a positions-only teacher never reads them), and acts with the teacher's
@@ -34,9 +34,9 @@ loop RMSE against the true state so far (every 250 steps), and beside it
 (``<stem>.visited.npy``) each step's true state followed by the x and sin θ read from its
 image.
 
-``python experiments/state_bottleneck.py train DATASET OUT [--steps 15000] [--within 0.94]
+``python research/probes/state_bottleneck.py train DATASET OUT [--steps 15000] [--within 0.94]
 [--all-frames]``, then ``TWIST_BOTTLENECK_CNN=OUT TWIST_BOTTLENECK_TEACHER=TEACHER
-PYTHONPATH=experiments twist-eval --agent oracle=TEACHER --agent state_bottleneck:policy
+PYTHONPATH=research/probes twist-eval --agent oracle=TEACHER --agent state_bottleneck:policy
 --dr heldout --supersample 2``.
 """
 

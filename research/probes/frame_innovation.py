@@ -20,7 +20,7 @@ another held-out step (``other``, the state and image unchanged: a drifted belie
 steps and on those within ``--upright`` degrees of upright (cartpole's pole: state component
 1 and 2 are its angle's cosine and sine).
 
-``python experiments/frame_innovation.py DATASET STUDENT.pt [...] [--teacher T]`` (student
+``python research/probes/frame_innovation.py DATASET STUDENT.pt [...] [--teacher T]`` (student
 checkpoints or agent bundles) prints one JSON line per student.
 """
 

@@ -10,7 +10,7 @@ after actions -1 and +1 (cartpole's control cost makes it ~0.4 while the pole is
 * ``mlp``: a plain 2x256 MLP regressing r_t on (s_{t-1}, a_t) for the same number of updates
   (batch 800), the baseline measured in the same run.
 
-Prints one JSON line. ``python experiments/reward_model_probe.py [--preset quick]
+Prints one JSON line. ``python research/probes/reward_model_probe.py [--preset quick]
 [--updates 1000] [--episodes 10]``
 """
 

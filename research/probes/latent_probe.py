@@ -21,7 +21,7 @@ which half of the latent its error comes from. ``return``: the episodes' return.
 the whole episode's variance), in bins of ``--bin`` steps: whether its h drifts further the
 longer it filters, e.g. past the length of the windows it was trained on.
 
-Prints one JSON line of means over episodes. ``python experiments/latent_probe.py TEACHER
+Prints one JSON line of means over episodes. ``python research/probes/latent_probe.py TEACHER
 AGENT [--dr heldout] [--episodes 4] [--acting student]``
 """
 

@@ -13,11 +13,11 @@ The folder is then used as the training DR of a re-render of D's stored states
 (``twist-data render D D2 --backgrounds DIR --supersample 2``), and a student distilled from
 D2 with D's teacher. The held-out families (cells, rings, Mondrian) stay unseen either way.
 
-Measured (docs/experiments.md, "Does a wider training bank make unseen backgrounds read
+Measured (research/log.md, "Does a wider training bank make unseen backgrounds read
 better?"): 1,024 textures with ``--extra`` read held-out frames better and lose the same
 scenes.
 
-``python experiments/texture_folder.py OUT [--count 1024] [--size 256] [--extra] [--seed 1]``
+``python research/probes/texture_folder.py OUT [--count 1024] [--size 256] [--extra] [--seed 1]``
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ row, and writes the grid, scaled 4x without smoothing, to ``--out``. At supersam
 pole breaks into stray pixels; at 2 it stays a line whose tilt the pixels' shades carry. Prints
 one JSON line naming the rows and the image (a figure, not a timing: nothing to compare).
 
-    python experiments/pole_aliasing.py [--out docs/images/pole-aliasing.png]
+    python research/probes/pole_aliasing.py [--out docs/images/pole-aliasing.png]
 """
 
 from __future__ import annotations

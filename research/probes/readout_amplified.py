@@ -14,7 +14,7 @@ if they are lost for noise or an offset, the gain should not help or should hurt
 
 Each agent is evaluated at every gain on the same held-out episodes, one table::
 
-    python experiments/readout_amplified.py runs/mirror/student/agent.pt --gain 1 \
+    python research/probes/readout_amplified.py runs/mirror/student/agent.pt --gain 1 \
         --gain 1.5 --episodes 30 --out runs/amplified/eval [--save runs/amplified/bundles]
 """
 
@@ -36,7 +36,7 @@ def amplified(agent: Agent, lean: float) -> Agent:
     agent.config = dataclasses.replace(agent.config, student=student)
     agent.student.config = student
     agent.student.readout.config = student.readout
-    agent.info["lean_set_by"] = "experiments/readout_amplified.py"
+    agent.info["lean_set_by"] = "research/probes/readout_amplified.py"
     return agent
 
 

@@ -19,7 +19,7 @@ exceeds ``--bad`` (a scene where the pole is not read). With ``--trajectories`` 
 one line per evaluated episode instead: the errors along the agent's own states before the
 pole first leans past ``--near`` degrees, and after.
 
-``python experiments/readout_scenes.py AGENT.pt DATASET [--settings stored,heldout]
+``python research/probes/readout_scenes.py AGENT.pt DATASET [--settings stored,heldout]
 [--backgrounds DIR] [--episodes 30] [--near 10] [--bad 0.05] [--trajectories EVAL/trajectories]``
 """
 

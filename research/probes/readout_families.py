@@ -11,7 +11,7 @@ on background kinds it never saw, apart from any closed-loop effect.
 Per setting one JSON line: each read component's RMS error in the state's units, the
 median and worst scene's RMS error in D's robust spreads (the read-out's training units).
 
-``python experiments/readout_families.py AGENT.pt DATASET [--settings stored,train,heldout]
+``python research/probes/readout_families.py AGENT.pt DATASET [--settings stored,train,heldout]
 [--backgrounds DIR] [--episodes 30]``
 """
 

@@ -8,7 +8,7 @@ one pose it can leave out the very phase the actor must act in. This script read
 the share of their frames that are typical, and the read-out's RMS error per read component,
 in robust spreads and in state units, on typical and on the other frames.
 
-``python experiments/readout_typical.py AGENT.pt DATASET [--episodes 12] [--holdout-every 10]``
+``python research/probes/readout_typical.py AGENT.pt DATASET [--episodes 12] [--holdout-every 10]``
 """
 
 from __future__ import annotations

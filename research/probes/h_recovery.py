@@ -17,7 +17,7 @@ random step) and the RMS difference of the teacher's actor on both latents
 (``action_rmse``). ``teacher`` is the teacher itself with other sampling draws: the baseline
 measured in the same run.
 
-``python experiments/h_recovery.py DATASET AGENT [--teacher T] [--starts 64] [--horizon 100]``
+``python research/probes/h_recovery.py DATASET AGENT [--teacher T] [--starts 64] [--horizon 100]``
 prints one JSON line.
 """
 

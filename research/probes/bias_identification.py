@@ -1,7 +1,7 @@
 """Can a cartpole read-out's scene bias be told from its own readings and the actions?
 
 In the held-out scenes a read-out student loses, its CNN reads the pole's angle with a
-constant offset of 2-3 degrees (docs/experiments.md, "Is a lost scene read with a bias?"):
+constant offset of 2-3 degrees (research/log.md, "Is a lost scene read with a bias?"):
 the teacher's filter balances a lean that is not there and the cart runs off to hold the
 true pole. A constant offset is physically inconsistent: a pole that reads upright while the
 cart keeps accelerating must in truth lean. This script measures whether that inconsistency
@@ -23,7 +23,7 @@ Per episode it also prints how the reading follows the true angle within 12 degr
 upright (the slope and offset of a line fitted to read on true angle): whether a lost scene
 is read with an offset, or shrunk toward upright.
 
-``python experiments/bias_identification.py AGENT.pt DATASET TRAJECTORIES --name NAME``
+``python research/probes/bias_identification.py AGENT.pt DATASET TRAJECTORIES --name NAME``
 """
 
 from __future__ import annotations

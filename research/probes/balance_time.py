@@ -22,7 +22,7 @@ alone cannot tell the two apart. This script reads the trajectories ``twist-eval
 * with ``--against NAME``: the episode-paired difference of fall steps (mean ± standard error)
   and how many episodes fall later, the same pairing as ``twist-eval --paired-with``.
 
-``python experiments/balance_time.py EVAL_DIR [--against oracle] [--lean 25]``
+``python research/probes/balance_time.py EVAL_DIR [--against oracle] [--lean 25]``
 """
 
 from __future__ import annotations

@@ -9,11 +9,11 @@ the pole at +lean and -lean degrees, the cart at a few positions, and prints per
 over cart positions. ``--dr`` draws the scenes from another preset instead (``train``,
 ``train-contrast``: how often training shows a pole that faint). ``--nominal`` keeps every
 material at its nominal colour, with each scene's background and crop unchanged (the colour
-draws are still made), as the nominal-colour evaluation in docs/experiments.md did.
+draws are still made), as the nominal-colour evaluation in research/log.md did.
 
 One JSON line per scene, then one summary line (median and quartiles of the signal).
 
-``python experiments/pole_contrast.py [--episodes 30] [--dr heldout] [--lean 0.5]
+``python research/probes/pole_contrast.py [--episodes 30] [--dr heldout] [--lean 0.5]
 [--positions -0.5,0,0.5] [--nominal] [--supersample 2] [--faint 2200]``
 """
 

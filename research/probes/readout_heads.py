@@ -2,7 +2,7 @@
 
 The read-out student loses held-out scenes in which its reading of the pole's angle is off
 by a constant (a bias of 1-3 degrees makes the teacher's filter chase a lean that is not there,
-docs/experiments.md). This screens heads on the same CNN trunk, trained the same number of
+research/log.md). This screens heads on the same CNN trunk, trained the same number of
 single-frame updates on D's typical frames with the read-out recipe's own loss
 (:class:`twist_models.readout.StateReadOut`, configured as a trained read-out student is),
 and measures each on a *lean sweep*: in each of ``twist-eval --dr heldout``'s first
@@ -18,7 +18,7 @@ Heads:
   the 32 expected positions, so that a background's texture can move the reading only where
   it wins a map's peak.
 
-``python experiments/readout_heads.py RUN [--heads linear,keypoints3] [--updates 10000]
+``python research/probes/readout_heads.py RUN [--heads linear,keypoints3] [--updates 10000]
 [--scenes 30] [--agent AGENT]`` with RUN a main-job folder holding ``dataset`` and a read-out
 ``student``; ``--agent`` sweeps an agent bundle without training: each image alone, and, where the agent
 reads the mirror image too (``readout_mirror``), as it acts.

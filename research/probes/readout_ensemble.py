@@ -12,7 +12,7 @@ positions the filter is handed, each member's mirror-averaged as the recipe read
 of every member's, its (cos, sin) pairs put back on the unit circle. Every member alone and
 the mean are evaluated on the same held-out episodes (``run_evaluation``, one table)::
 
-    python experiments/readout_ensemble.py runs/mirror/student/agent.pt \
+    python research/probes/readout_ensemble.py runs/mirror/student/agent.pt \
         runs/mirror1/student/agent.pt --episodes 30 --out runs/ensemble/eval
 
 The members must share D (the read-out's standardisation and velocity gains) and teacher:

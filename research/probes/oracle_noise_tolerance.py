@@ -25,7 +25,7 @@ tolerates.
 probabilities (or most likely classes) instead of a sample.
 
 Prints one JSON line: the mean return per setting. ``python
-experiments/oracle_noise_tolerance.py TEACHER --noise 2:0.035 --noise 4:0.2 [--read mean]
+research/probes/oracle_noise_tolerance.py TEACHER --noise 2:0.035 --noise 4:0.2 [--read mean]
 [--exact] [--episodes 5]``
 """
 
