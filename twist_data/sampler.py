@@ -9,7 +9,7 @@
 * ``rare_states`` > 0 replaces the uniform draw by one that favours windows through rarely
   visited states (see :func:`state_rarity`): a teacher that balances a pole fills D with
   nearly identical upright steps and few leaning ones. On cartpole it put more of the pole's
-  state into the student's latent and lowered its return (docs/results.md), so it is
+  state into the student's latent and lowered its return (docs/findings.md), so it is
   off by default. Each stream then keeps the cumulative weights of its windows (8 bytes each).
 * Images are decoded on demand into a bounded FIFO arena of decoded frames (``cache_bytes``);
   with uniform access, FIFO evicts as well as LRU and allows vectorised hit lookup. Low-

@@ -14,7 +14,7 @@ cannot take a position from where it falls in the frame and must read it against
 (the rail, the floor), as DrQ's and RAD's random shifts do for pixel-based RL. Measured on
 cartpole (moves of up to 8 pixels and rolls of up to 0.1 rad), it doubled the read-out's
 error and lost the pole; rendering D with the camera moved (``train-wide-full``) held a moved
-camera instead (docs/results.md, "A moved camera and changed light"), so it is off by default.
+camera instead (docs/findings.md, "A moved camera and changed light"), so it is off by default.
 """
 
 from __future__ import annotations

@@ -68,7 +68,7 @@ class DistilConfig:
     """Student updates."""
     batch_size: int = 16
     """Windows per update (the paper gives none; DreamerV2's world model takes 50, which did
-    no better at equal updates: docs/results.md)."""
+    no better at equal updates: docs/findings.md)."""
     length: int = 50
     """L, steps per window (the paper: 50)."""
     horizon: int = 15
@@ -86,7 +86,7 @@ class DistilConfig:
     paper) or ``mean``, the class probabilities, which makes both filters deterministic, so
     the student's h carries its own errors along the window instead of following the
     teacher's draws; a student so trained acts with ``twist-eval --posterior mean`` (not in
-    the paper; see docs/results.md)."""
+    the paper; see docs/findings.md)."""
     copy_dynamics: bool = True
     """Start the student's RSSM from the teacher's (False: from scratch, as the paper)."""
     freeze_dynamics: bool = False
@@ -150,7 +150,7 @@ class DistilConfig:
     teacher actor's squared sensitivity to it at that step
     (:func:`~twist_models.frame_targets.actor_sensitivity`; measured worse: the cosine,
     which the actor barely weighs, is then read 0.33 off upright and the teacher's encoder
-    sees a pole that is not there, docs/results.md), or ``frame``: ``robust`` with each
+    sees a pole that is not there, docs/findings.md), or ``frame``: ``robust`` with each
     frame weighted by the teacher actor's summed sensitivity there (mean 1 over D), so that
     frames whose errors the actor ignores (a fallen pole) weigh little."""
     readout_frames: str = "auto"
@@ -176,12 +176,12 @@ class DistilConfig:
     mid-episode: ``read`` (the ``readout`` recipe's), the difference with the frame before
     the window, which the sampler draws with it, as when acting, where the step before is
     always seen; ``zero``: none, the velocities 0 while the teacher's filter reads the true
-    ones there, which only training shows (docs/results.md)."""
+    ones there, which only training shows (docs/findings.md)."""
     stage_optimiser: str = "keep"
     """What the updates on windows after a first stage (``frame_steps``) start from:
     ``reset`` (the ``readout`` recipe's), a fresh AdamW, since the first stage's moments were
     scaled by another objective's gradients; ``keep``, the first stage's
-    (docs/results.md)."""
+    (docs/findings.md)."""
     frame_steps: int = 0
     """Updates of a first stage on single frames with the per-frame terms alone, before
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
@@ -353,7 +353,7 @@ AUTO_MIRROR = "augment"
 #: the teacher's state from each image into the teacher's own fixed filter
 #: (:mod:`twist_models.readout`), its read-out trained on single frames; Eq. 3/4 through the
 #: filter only if ``steps`` asks, reading each image with its mirror image's where the task
-#: declares its mirror (docs/design.md, "Recipes", and docs/results.md for what each part
+#: declares its mirror (docs/design.md, "Recipes", and docs/findings.md for what each part
 #: was measured to give).
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {},
@@ -372,7 +372,7 @@ RECIPES: dict[str, dict[str, Any]] = {
 FRAME_STEPS = {"dense": {"paper": 20_000, "quick": 10_000, "tiny": 4},
                "readout": {"paper": 90_000, "quick": 45_000, "tiny": 4}}
 #: Updates on windows (Eq. 3/4 through the teacher's fixed filter) after the read-out stage:
-#: none by default. Measured on cartpole (docs/results.md), 200 of them lowered the held-out
+#: none by default. Measured on cartpole (docs/findings.md), 200 of them lowered the held-out
 #: posterior KL from 7.7 to 4.8 nats while the read-out's error grew and the return fell from
 #: 873.3 to 331.7: the paper's objective, through a filter that is already the teacher's,
 #: moves the read-out away from the state the actor needs. ``steps`` adds them.

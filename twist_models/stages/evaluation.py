@@ -82,7 +82,7 @@ class EvalConfig:
     posterior: str = "sample"
     """How image agents take z from their posterior when acting (one of
     :data:`~twist_models.rssm.POSTERIOR_READS`): ``sample`` as DreamerV2 and the paper,
-    ``mode``, or ``mean`` (the class probabilities; see docs/results.md)."""
+    ``mode``, or ``mean`` (the class probabilities; see docs/findings.md)."""
 
     def __post_init__(self) -> None:
         task_spec(self.task)

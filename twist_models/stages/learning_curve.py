@@ -6,7 +6,7 @@ A distiller never touches a simulator, so the curve is an evaluation of its snap
 while it runs or after (``twist-eval --snapshots RUN``), and resumable like any evaluation:
 snapshots already evaluated are not run again. Why a curve and not one figure: the return
 need not rise with the updates while every held-out latent metric improves
-(docs/results.md), so an update count is chosen by evaluating the snapshots.
+(docs/findings.md), so an update count is chosen by evaluating the snapshots.
 """
 
 from __future__ import annotations
