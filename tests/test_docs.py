@@ -51,7 +51,7 @@ def test_relative_links_resolve(document: Path) -> None:
 
 
 def test_front_page_is_short() -> None:
-    assert len((ROOT / "README.md").read_text().splitlines()) <= 230
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 200
 
 
 def test_no_development_history_in_tracked_files() -> None:
