@@ -28,6 +28,7 @@ from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
 from twist_models.config import (
     field_types,
+    from_json,
     replace_fields,
     student_preset,
     teacher_preset,
@@ -419,20 +420,6 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
                                                "action_weight=-1", "--out", str(tmp_path / "g")],
         "encoder_norm must be one of none, layer, got 'batch'": [
             "--teacher", str(teacher), "--set", "encoder_norm=batch", "--out", str(tmp_path / "i")],
-        "encoder_depth must be a positive number of channels or null, got 0": [
-            "--teacher", str(teacher), "--set", "encoder_depth=0", "--out", str(tmp_path / "k")],
-        "encoder_layers must be 1 to 4 convolutions or null, got 5": [
-            "--teacher", str(teacher), "--set", "encoder_layers=5", "--out", str(tmp_path / "l")],
-        "encoder_pool must be one of flatten, keypoints, got 'mean'": [
-            "--teacher", str(teacher), "--set", "encoder_pool=mean", "--out", str(tmp_path / "m")],
-        "encoder_first_stride must be 1 to 4 (the first kernel's side), got 5": [
-            "--teacher", str(teacher), "--set", "encoder_first_stride=5", "--out",
-            str(tmp_path / "n")],
-        "is too small for kernels (4, 4, 4, 4) with a first stride of 4": [
-            "--teacher", str(teacher), "--set", "encoder_first_stride=4", "--out",
-            str(tmp_path / "o")],
-        "rare_states must be >= 0, got -1": ["--teacher", str(teacher), "--set",
-                                             "rare_states=-1", "--out", str(tmp_path / "j")],
         "KEY one of": ["--teacher", str(teacher), "--set", "nope=1", "--out",
                        str(tmp_path / "h")],
     }
@@ -515,13 +502,22 @@ def test_a_run_stored_before_a_config_field_existed_resumes_under_its_default() 
         f"length was 9, now {config.length}"]
 
 
-def test_rare_state_priority_reaches_training_windows_only(distil_inputs, tmp_path) -> None:
-    dataset, teacher_path = distil_inputs
-    config = distil_preset("tiny", steps=3, rare_states=2.0)
-    assert config.sampler("train", 0).rare_states == 2.0
-    assert config.sampler("heldout", 0).rare_states == 0.0  # agreement stays comparable
-    summary = distil(dataset, tmp_path / "rare", config, teacher=teacher_path)
-    assert summary.updates == 3 and stored_config(tmp_path / "rare").rare_states == 2.0
+def test_a_run_recorded_with_a_removed_switch_loads_only_where_it_was_off() -> None:
+    config = distil_preset("tiny")
+    stored = to_json(config)
+    stored["frame_shift"] = 0.0  # removed since, at the value that meant "off"
+    assert from_json(DistilConfig, stored) == config
+    assert resume_conflicts(stored, config, ("steps",)) == []
+    stored["frame_shift"] = 8.0  # a run the removed code trained
+    with pytest.raises(ConfigError, match=r"DistilConfig\.frame_shift was removed .*sets it "
+                                          r"to 8\.0"):
+        from_json(DistilConfig, stored)
+    assert resume_conflicts(stored, config, ("steps",)) == [
+        "frame_shift was 8.0 and has been removed"]
+    stored["frame_shift"] = 0.0
+    stored["frame_tilt"] = 1.0  # never a field
+    with pytest.raises(ConfigError, match=r"unknown fields \['frame_tilt'\] for DistilConfig"):
+        from_json(DistilConfig, stored)
 
 
 def test_frozen_dynamics_train_only_the_encoder_and_posterior(distil_inputs, tmp_path) -> None:
@@ -539,29 +535,6 @@ def test_frozen_dynamics_train_only_the_encoder_and_posterior(distil_inputs, tmp
     assert {"img_in", "gru", "img_out"} <= changed(freeze=False)
     with pytest.raises(ConfigError, match="needs copy_dynamics"):
         distil_preset("tiny", freeze_dynamics=True, copy_dynamics=False)
-
-
-def test_a_student_encoder_of_a_chosen_shape_is_trained_saved_and_reloaded(
-        distil_inputs, tmp_path) -> None:
-    dataset, teacher_path = distil_inputs
-    widths, features = {}, {}
-    shapes = {"preset": {}, "narrow": {"encoder_depth": 6},
-              "keypoints": {"encoder_layers": 3, "encoder_pool": "keypoints"},
-              "patches": {"encoder_layers": 3, "encoder_first_stride": 4}}
-    for name, settings in shapes.items():
-        summary = distil(dataset, tmp_path / name, distil_preset("tiny", steps=2, **settings),
-                         teacher=teacher_path)
-        student = load_student(summary.student)[0]
-        convolutions = [m for m in student.encoder.modules() if isinstance(m, torch.nn.Conv2d)]
-        widths[name] = [c.out_channels for c in convolutions]
-        features[name] = student.encoder.out_dim
-    assert widths["preset"] == [4, 8, 16, 32]  # the tiny preset's depth 4, doubled at each layer
-    assert widths["narrow"] == [6, 12, 24, 48]
-    assert widths["keypoints"] == [4, 8, 16] and features["keypoints"] == 2 * 16
-    assert features["preset"] == 32 * 2 * 2  # the last map flattened: 2 x 2 pixels
-    strides = [c.stride for c in convolutions]  # the last student's: 4x4 patches first
-    assert widths["patches"] == [4, 8, 16] and strides == [(4, 4), (2, 2), (2, 2)]
-    assert features["patches"] == 16 * 2 * 2  # 64 -> 16 -> 7 -> 2
 
 
 def test_stacked_frames_repeat_at_episode_starts_and_agree_step_by_step() -> None:
@@ -611,36 +584,19 @@ def test_the_agent_acting_step_by_step_filters_as_the_student_does_on_windows(
         student.config.rssm.deter + frames * student.encoder.out_dim)
 
 
-def test_mean_filters_are_deterministic_and_act_as_they_were_trained() -> None:
-    objective, batch = _objective(imagined=False, filter_read="mean")
-    sampled, _ = _objective(imagined=False)
-    runs = {}
-    for name, candidate in (("mean", objective), ("sample", sampled)):
-        for seed in (1, 2):
-            torch.manual_seed(seed)
-            with torch.no_grad():
-                runs[name, seed] = candidate.filter(batch)[:3]
-    (s1, t1, terms1), (s2, t2, terms2) = runs["mean", 1], runs["mean", 2]
-    for a, b in ((s1, s2), (t1, t2)):  # no draw reaches either filter
-        assert torch.equal(a["deter"], b["deter"]) and torch.equal(a["stoch"], b["stoch"])
-    assert all(torch.equal(terms1[k], terms2[k]) for k in terms1)
-    for post in (s1, t1):  # z is the posterior's class probabilities
-        torch.testing.assert_close(post["stoch"], torch.softmax(post["logits"], -1))
-    assert not torch.equal(runs["sample", 1][0]["deter"], runs["sample", 2][0]["deter"])
-
-    # The agent acting with --posterior mean is the student's filter of training.
+def test_an_agent_acting_on_posterior_means_is_the_students_filter_on_means() -> None:
+    objective, batch = _objective(imagined=False)
     agent = Agent.from_models(objective.student, objective.teacher).eval()
     images, state, logits, actions = batch["image"][:1], None, [], []
     for t in range(images.shape[1]):
         action, state = agent.act(images[0, t].numpy(), state, posterior="mean")
+        torch.testing.assert_close(state.latent["stoch"], torch.softmax(state.latent["logits"], -1))
         logits.append(state.latent["logits"])
         actions.append(torch.as_tensor(action))
     previous = torch.stack([torch.zeros(1), *actions[:-1]])[None].float()
-    with torch.no_grad():
+    with torch.no_grad():  # no draw reaches a filter on means
         post, _ = objective.student.observe(images, previous, batch["is_first"][:1], read="mean")
     torch.testing.assert_close(torch.cat(logits), post["logits"][0])
-    with pytest.raises(ConfigError, match="filter_read must be one of sample, mean, got 'mode'"):
-        distil_preset("tiny", filter_read="mode")
 
 
 def test_a_resident_copy_of_d_feeds_the_loaders_windows(distil_inputs, tmp_path) -> None:

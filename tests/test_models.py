@@ -23,7 +23,7 @@ from twist_models.losses import (
     twohot_loss,
     twohot_mean,
 )
-from twist_models.networks import ImageDecoder, ImageEncoder, Keypoints, single_threaded
+from twist_models.networks import ImageDecoder, ImageEncoder, single_threaded
 from twist_models.rssm import sample_one_hot
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 from twist_models.world_model import WorldModel
@@ -61,29 +61,6 @@ def test_a_layer_normed_cnn_ignores_the_scale_of_its_convolutions() -> None:
         assert torch.allclose(encoder(image), before, atol=1e-4) == invariant, norm
     with pytest.raises(ConfigError, match="'batch'"):
         CNNConfig(norm="batch")
-
-
-def test_keypoints_are_each_channels_softmax_weighted_position() -> None:
-    pool = Keypoints(6, 6)  # x runs over columns, y over rows, both -1 to 1 in steps of 0.4
-    features = torch.zeros(2, 3, 6, 6)
-    features[0, 0, 2, 5] = 50.0  # one peak: its own position, to the softmax's precision
-    features[0, 1, 4, 1] = 50.0
-    features[1, 0, 0, :] = 50.0  # a peaked row: its middle, at y = -1
-    # channel 2 of the first image and the rest of the second stay flat: the centre
-    expected = torch.tensor([[1.0, -0.2, -0.6, 0.6, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0, 0.0, 0.0]])
-    assert torch.allclose(pool(features), expected, atol=1e-6)
-    with torch.no_grad():  # a high temperature flattens any peak towards the centre
-        pool.log_temperature.fill_(10.0)
-    assert pool(features).abs().max() < 1e-3
-
-    encoder = ImageEncoder(CNNConfig(depth=4, encoder_kernels=(4, 4, 4), pool="keypoints"))
-    assert encoder.out_dim == 32  # 16 channels of a 6 x 6 map, an (x, y) each
-    image = torch.randint(0, 256, (2, 5, 64, 64, 3), dtype=torch.uint8)
-    with torch.autocast("cpu", dtype=torch.bfloat16):
-        out = encoder(image)
-    assert out.shape == (2, 5, 32) and out.dtype == torch.float32 and out.abs().max() <= 1
-    with pytest.raises(ConfigError, match="'mean'"):
-        CNNConfig(pool="mean")
 
 
 def test_rssm_shapes_with_extra_leading_dims() -> None:

@@ -129,7 +129,7 @@ def test_frame_batches_stack_the_steps_before_within_the_episode(
         inputs: tuple[Path, Path, Teacher]) -> None:
     dataset, _, teacher = inputs
     data = open_dataset(dataset)
-    targets = teacher_targets(teacher, data, np.arange(data.n_episodes), read="mean")
+    targets = teacher_targets(teacher, data, np.arange(data.n_episodes))
     batches = FrameBatches(data, targets, batch_size=64, frames=3, view=1, seed=0)
     batch = batches.batch()
     assert batch["image"].shape == (64, 3, 64, 64, 3)
@@ -225,8 +225,8 @@ def test_a_window_from_the_teachers_latent_continues_its_filter(
         inputs: tuple[Path, Path, Teacher]) -> None:
     dataset, _, teacher = inputs
     data = open_dataset(dataset)
-    config = distil_preset("tiny", "dense", window_start="teacher", filter_read="mean")
-    targets = teacher_targets(teacher, data, np.arange(data.n_episodes), read="mean")
+    config = distil_preset("tiny", "dense", window_start="teacher")
+    targets = teacher_targets(teacher, data, np.arange(data.n_episodes))
     from twist_data.sampler import WindowSampler
 
     windows = WindowSampler(data, config.sampler("all", 0)).batch()

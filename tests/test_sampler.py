@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader
 from tests.conftest import SMALL
 from twist_data.errors import SamplerConfigError
 from twist_data.reader import _ZarrFrameReader, open_dataset
-from twist_data.sampler import SamplerConfig, WindowDataset, WindowSampler, state_rarity
+from twist_data.sampler import SamplerConfig, WindowDataset, WindowSampler
 from twist_data.synth import (
     SynthConfig,
     episode_length,
@@ -140,56 +140,6 @@ def test_fixed_view_and_extra_keys(small_dataset: Path) -> None:
     assert b["physics"].shape == (3, L, 4) and b["physics"].dtype == np.float64
 
 
-def test_state_rarity_is_inverse_marginal_frequency() -> None:
-    # Nine steps at 0 and one at 1: the odd step is 9x rarer. A constant component and a
-    # duplicate of the first must not change that (geometric mean over components).
-    first = np.r_[np.zeros(9), 1.0]
-    for states in (first[:, None], np.c_[first, np.full(10, 5.0)], np.c_[first, first]):
-        rarity = state_rarity(states)
-        np.testing.assert_allclose(rarity[9] / rarity[:9], 9.0)
-
-
-def test_rare_state_priority_draws_windows_in_proportion(tmp_path: Path) -> None:
-    config = SynthConfig(episodes=4, steps=20, image_size=16, seed=5)
-    writer = ShardWriter.create(tmp_path, "odd", synth_spec(2, 16))
-    for i in range(config.episodes):
-        episode, info = synthetic_episode(config, i)
-        # Episode 2 stays in a state the others never visit: each of its steps is as many
-        # times rarer as the others have steps.
-        episode = dataclasses.replace(episode, state=np.full_like(episode.state, i == 2))
-        writer.append(episode, info)
-    writer.close()
-    ds = open_dataset(tmp_path)
-    rarity = state_rarity(ds.column("state"))
-    odd = set(range(ds.episode_starts[2], ds.episode_ends[2]))
-    odd_share = []
-    for alpha in (0.0, 1.0, 2.0):
-        # Independent expectation: every valid start enumerated, its window's mean rarity.
-        weight = {s: float(np.mean(rarity[s:s + L])) ** alpha
-                  for s in all_valid_starts(tmp_path, L)}
-        drawn = []
-        for j in range(2):  # two streams: disjoint, and each follows the weights of its own
-            sampler = WindowSampler(ds, SamplerConfig(length=L, seed=1, rare_states=alpha),
-                                    stream=j, n_streams=2)
-            starts = sampler.sample_starts(20_000)[0]
-            mine = set(starts.tolist())
-            stream_weight = sum(weight[s] for s in mine)
-            counts = np.bincount(starts, minlength=ds.n_steps)
-            for s in mine:
-                assert counts[s] / starts.size == pytest.approx(weight[s] / stream_weight,
-                                                                 abs=0.01)
-            drawn.append(starts)
-        assert not set(drawn[0].tolist()) & set(drawn[1].tolist())
-        assert set(np.concatenate(drawn).tolist()) == set(weight)
-        odd_share.append(np.isin(np.concatenate(drawn), list(odd)).mean())
-    odd_windows = len(odd & set(weight))
-    common_windows = len(weight) - odd_windows
-    ratio = (ds.n_steps - len(odd)) / len(odd)
-    for alpha, share in zip((0.0, 1.0, 2.0), odd_share, strict=True):
-        expected = odd_windows * ratio**alpha / (odd_windows * ratio**alpha + common_windows)
-        assert share == pytest.approx(expected, abs=0.01)
-
-
 def test_bad_requests_are_named(small_dataset: Path) -> None:
     longest = max(episode_length(SMALL, i) for i in range(SMALL.episodes))
     with pytest.raises(SamplerConfigError, match=rf"window length 500 is longer than every "
@@ -202,8 +152,6 @@ def test_bad_requests_are_named(small_dataset: Path) -> None:
         WindowSampler(small_dataset, SamplerConfig(keys=("pixels",), length=L))
     with pytest.raises(SamplerConfigError, match="window length must be >= 1"):
         SamplerConfig(length=0)
-    with pytest.raises(SamplerConfigError, match=r"rare_states must be >= 0, got -1.0"):
-        SamplerConfig(rare_states=-1.0)
 
 
 def test_sampler_picks_up_episodes_committed_while_it_runs(tmp_path: Path) -> None:

@@ -6,11 +6,6 @@
 * Several streams (DataLoader workers x distributed ranks) draw from disjoint sets of
   windows: stream j of P only draws flat start indices congruent to j modulo P. The union of
   the streams is uniform, and each stream is deterministic under the seed.
-* ``rare_states`` > 0 replaces the uniform draw by one that favours windows through rarely
-  visited states (see :func:`state_rarity`): a teacher that balances a pole fills D with
-  nearly identical upright steps and few leaning ones. On cartpole it put more of the pole's
-  state into the student's latent and lowered its return (docs/findings.md), so it is
-  off by default. Each stream then keeps the cumulative weights of its windows (8 bytes each).
 * Images are decoded on demand into a bounded FIFO arena of decoded frames (``cache_bytes``);
   with uniform access, FIFO evicts as well as LRU and allows vectorised hit lookup. Low-
   dimensional arrays (about 100 bytes per step) are held in memory; images never are beyond
@@ -24,6 +19,7 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -46,29 +42,13 @@ def heldout_episodes(n_episodes: int, every: int) -> np.ndarray:
     return np.arange(n_episodes) % every == every - 1
 
 
-def state_rarity(states: np.ndarray, bins: int = 64) -> np.ndarray:
-    """How rarely D visits each step's state: float64 [N] from states [N, S], the geometric
-    mean over the S components of 1 / (the component's histogram density, ``bins`` bins
-    over its range, per unit of its standard deviation). Marginals, not the joint density,
-    because D holds far too few steps to fill a histogram in S dimensions. Constant
-    components are left out (all ones when every component is constant)."""
-    states = np.asarray(states, np.float64)
-    log_density, varying = np.zeros(len(states)), 0
-    for column in states.T:
-        low, high = column.min(), column.max()
-        if high <= low:
-            continue
-        varying += 1
-        which = np.minimum(((column - low) / (high - low) * bins).astype(np.int64), bins - 1)
-        counts = np.bincount(which, minlength=bins)
-        width = (high - low) / bins / column.std()
-        log_density += np.log(counts[which] / (len(column) * width))
-    return np.exp(-log_density / max(varying, 1))
-
-
 @dataclass(frozen=True)
 class SamplerConfig:
     """How windows are drawn and batched."""
+
+    #: Removed switches and the value that meant "off" (twist_models.config.removed_fields):
+    #: a draw favouring rare states lowered the student's return (docs/findings.md).
+    REMOVED: ClassVar[dict[str, Any]] = {"rare_states": 0.0}
 
     length: int = 50
     """L: steps per window (the paper's distillation windows are 50)."""
@@ -89,9 +69,6 @@ class SamplerConfig:
     stable as a dataset grows, so held-out episodes stay held out."""
     split: str = "all"
     """Episodes windows come from: ``all``, ``train`` (not held out) or ``heldout``."""
-    rare_states: float = 0.0
-    """Exponent a of rare-state priority: a window is drawn with probability proportional to
-    (the mean over its steps of :func:`state_rarity`) ** a; 0: uniform."""
 
     def __post_init__(self) -> None:
         problems = []
@@ -101,8 +78,6 @@ class SamplerConfig:
             problems.append(f"batch size must be >= 1, got {self.batch_size}")
         if self.view is not None and self.view < 0:
             problems.append(f"view index must be >= 0, got {self.view}")
-        if not self.rare_states >= 0:
-            problems.append(f"rare_states must be >= 0, got {self.rare_states}")
         if self.cache_bytes < 0 or self.refresh_every < 0:
             problems.append("cache_bytes and refresh_every must be >= 0")
         if self.split not in SPLITS:
@@ -263,9 +238,6 @@ class WindowSampler:
                 f"fewer than the {self.n_streams} sampler streams"
             )
         self._columns = {k: self.dataset.column(k) for k in self.config.keys if k != "image"}
-        self._cum_priority = None
-        if cfg.rare_states > 0:
-            self._cum_priority = self._window_priorities()
         self.cache.clear(self.dataset.n_steps * self.dataset.spec.views)
 
     def refresh(self) -> int:
@@ -290,25 +262,11 @@ class WindowSampler:
         before = np.where(episode > 0, self._cum_valid[episode - 1], 0)
         return self.dataset.episode_starts[episode] + (flat - before), episode
 
-    def _window_priorities(self) -> np.ndarray:
-        """Cumulative draw weights [count] of this stream's windows (flat j, j + P, ...)."""
-        length = self.config.length
-        rarity = state_rarity(self.dataset.column("state"))
-        summed = np.r_[0.0, np.cumsum(rarity)]
-        starts, _ = self.flat_to_start(np.arange(self.stream, self.total_windows, self.n_streams))
-        window = (summed[starts + length] - summed[starts]) / length
-        return np.cumsum(window ** self.config.rare_states)
-
     def sample_starts(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Draw ``n`` windows of this stream: (global start step [n], global episode [n])."""
         p, j = self.n_streams, self.stream
-        if self._cum_priority is None:
-            count = (self.total_windows - j + p - 1) // p
-            index = self._rng.integers(0, count, n)
-        else:
-            total = self._cum_priority[-1]
-            index = np.searchsorted(self._cum_priority, self._rng.random(n) * total, side="right")
-        return self.flat_to_start(j + p * index)
+        count = (self.total_windows - j + p - 1) // p
+        return self.flat_to_start(j + p * self._rng.integers(0, count, n))
 
     def draw(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The next batch's windows without reading them: (global start step [B], global

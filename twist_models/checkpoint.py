@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from twist_data.errors import CheckpointError, CheckpointMismatchError
-from twist_models.config import to_json
+from twist_models.config import to_json, without_removed
 
 FORMAT = "twist.checkpoint"
 VERSION = 1
@@ -135,7 +135,8 @@ def restore(checkpoint: Checkpoint, module: nn.Module, config: Any,
             optimisers: Mapping[str, torch.optim.Optimizer] | None = None) -> None:
     """Load weights (and optimiser states) into a module built from ``config``; refuses with
     every differing config value named when the checkpoint was written for another config."""
-    differences = config_differences(checkpoint.config, to_json(config))
+    differences = config_differences(without_removed(type(config), checkpoint.config),
+                                     to_json(config))
     if differences:
         raise CheckpointMismatchError(f"{checkpoint.kind} checkpoint does not match the model: "
                                       + "; ".join(differences))

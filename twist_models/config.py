@@ -12,7 +12,7 @@ import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 from twist_data.errors import ConfigError
 
@@ -85,14 +85,16 @@ class MLPConfig:
 
 
 CNN_NORMS = ("none", "layer")
-#: How the CNN's last feature map becomes a vector: ``flatten`` (DreamerV2) or ``keypoints``
-#: (each channel's softmax-weighted image position, as spatial-softmax encoders of robot state).
-CNN_POOLS = ("flatten", "keypoints")
 
 
 @dataclass(frozen=True)
 class CNNConfig:
     """DreamerV2's convolutional image encoder/decoder for 64x64x3 images."""
+
+    #: Removed switches and the value that meant "off" (:func:`removed_fields`): a first
+    #: convolution over 4x4 patches and a keypoint head read no more per minute
+    #: (docs/findings.md).
+    REMOVED: ClassVar[dict[str, Any]] = {"first_stride": 2, "pool": "flatten"}
 
     depth: int = 48
     """Channels of the first convolution; doubled at every layer."""
@@ -106,34 +108,20 @@ class CNNConfig:
     """Normalisation between each encoder convolution and its activation: ``none``
     (DreamerV2's CNN) or ``layer`` (over each image's channels and pixels, as DreamerV3):
     under DR it learns thin features such as cartpole's pole many times faster."""
-    first_stride: int = 2
-    """Stride of the encoder's first convolution, at most its kernel's side: 2 (DreamerV2's,
-    overlapping windows) or, e.g., 4 (non-overlapping 4x4 patches, a map a quarter the size
-    for every layer after it)."""
-    pool: str = "flatten"
-    """How the encoder's last feature map [C, H, W] becomes its output (:data:`CNN_POOLS`):
-    ``flatten``, all C*H*W values (DreamerV2), or ``keypoints``, each channel's expected
-    (x, y) under a softmax over its pixels, 2*C values in [-1, 1]."""
-
     def __post_init__(self) -> None:
         object.__setattr__(self, "encoder_kernels", tuple(self.encoder_kernels))
         object.__setattr__(self, "decoder_kernels", tuple(self.decoder_kernels))
         require_positive(self, "depth", "image_size")
         require_choice(self, "norm", CNN_NORMS)
-        require_choice(self, "pool", CNN_POOLS)
         if not self.encoder_kernels:
             raise ConfigError("encoder_kernels must name at least one convolution, got ()")
-        if not 1 <= self.first_stride <= self.encoder_kernels[0]:
-            raise ConfigError(f"first_stride must be 1 to the first kernel's side "
-                              f"{self.encoder_kernels[0]}, got {self.first_stride}")
         if self.encoder_map_sizes()[-1] < 1:
             raise ConfigError(f"image size {self.image_size} is too small for kernels "
-                              f"{self.encoder_kernels} with a first stride of "
-                              f"{self.first_stride}: no pixel is left after the last")
+                              f"{self.encoder_kernels}: no pixel is left after the last")
 
     def encoder_strides(self) -> tuple[int, ...]:
-        """Each encoder convolution's stride: ``first_stride``, then 2."""
-        return (self.first_stride,) + (2,) * (len(self.encoder_kernels) - 1)
+        """Each encoder convolution's stride: 2."""
+        return (2,) * len(self.encoder_kernels)
 
     def encoder_map_sizes(self) -> list[int]:
         """The side of each encoder convolution's output map (valid convolutions)."""
@@ -479,21 +467,14 @@ def image_dreamer_preset(name: str, state_dim: int, action_dim: int, image_size:
 
 def student_preset(name: str, teacher: TeacherConfig, image_size: int = 64,
                    frames: int = 1, norm: str = "none", state_head: bool = False,
-                   readout: ReadOutConfig | None = None,
-                   depth: int | None = None, layers: int | None = None,
-                   pool: str = "flatten", first_stride: int = 2) -> StudentConfig:
-    """The student of size preset ``name`` (its CNN, normalised by ``norm``, ``depth``
-    channels wide and its first ``layers`` convolutions alone if given, the first of stride
-    ``first_stride``, its last map pooled by ``pool``) for ``teacher``,
+                   readout: ReadOutConfig | None = None) -> StudentConfig:
+    """The student of size preset ``name`` (its CNN normalised by ``norm``) for ``teacher``,
     whose RSSM it copies, reading ``frames`` images per step, with a read-out head of the
     teacher's state if ``state_head``, reading the state as ``readout`` pairs it if given."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
-    cnn = PRESETS[name].get("cnn", CNNConfig())
-    cnn = dataclasses.replace(cnn, image_size=image_size, norm=norm, pool=pool,
-                              first_stride=first_stride,
-                              depth=cnn.depth if depth is None else depth,
-                              encoder_kernels=cnn.encoder_kernels[:layers])
+    cnn = dataclasses.replace(PRESETS[name].get("cnn", CNNConfig()), image_size=image_size,
+                              norm=norm)
     return StudentConfig(rssm=teacher.world_model.rssm, action_dim=teacher.world_model.action_dim,
                          cnn=cnn, frames=frames,
                          state_dim=teacher.world_model.state_dim if state_head else 0,
@@ -513,9 +494,43 @@ def json_safe(value: Any) -> Any:
     return value
 
 
+def removed_fields(cls: type) -> Mapping[str, Any]:
+    """The fields ``cls`` once had and no longer has, each with the value that meant "off":
+    its ``REMOVED`` class attribute (a settings switch that no recipe used is removed, and a
+    run recorded before keeps loading as long as it left the switch off)."""
+    return getattr(cls, "REMOVED", {})
+
+
+def without_removed(cls: type, data: Mapping[str, Any]) -> dict[str, Any]:
+    """A stored config of ``cls`` (:func:`to_json` output, nested configs too) without the
+    removed fields it holds at their "off" value (:func:`removed_fields`), which change
+    nothing; a removed field at any other value stays, for the caller to refuse."""
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    removed, hints, out = removed_fields(cls), typing.get_type_hints(cls), {}
+    for name, value in data.items():
+        if name not in names:
+            if name not in removed or value != removed[name]:
+                out[name] = value
+            continue
+        kind = nested_config_type(hints[name])
+        out[name] = (without_removed(kind, value)
+                     if kind is not None and isinstance(value, Mapping) else value)
+    return out
+
+
 def from_json(cls: type[T], data: Mapping[str, Any]) -> T:
-    """Rebuild a (nested) config dataclass from :func:`to_json` output; unknown keys are errors."""
+    """Rebuild a (nested) config dataclass from :func:`to_json` output. Unknown keys are
+    errors, except a removed field (:func:`removed_fields`) at its "off" value, which is
+    dropped; one at any other value is refused, since the run it records used code that is
+    gone."""
+    data = without_removed(cls, data)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    removed = removed_fields(cls)
+    for name in sorted(set(data) - set(fields)):
+        if name in removed:
+            raise ConfigError(f"{cls.__name__}.{name} was removed (no recipe used it); this "
+                              f"config sets it to {data[name]!r}, which only the removed "
+                              f"code ran")
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(f"unknown fields {unknown} for {cls.__name__}")

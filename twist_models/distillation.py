@@ -17,20 +17,17 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import nn
 
 from twist_data.errors import ConfigError
 from twist_data.sampler import SamplerConfig
-from twist_models.augmentation import MAX_ROLL
 from twist_models.config import (
     CNN_NORMS,
-    CNN_POOLS,
     PRECISIONS,
     PRESETS,
-    CNNConfig,
     OptimConfig,
     replace_fields,
     require_choice,
@@ -59,6 +56,13 @@ class DistilConfig:
     are the paper's objective (the ``paper`` recipe); :data:`RECIPES` name other starting
     points."""
 
+    #: Switches no recipe used, removed with the code behind them (what each measured:
+    #: docs/findings.md); a run recorded before loads while it left them at these values.
+    REMOVED: ClassVar[dict[str, Any]] = {
+        "readout_weights": "robust", "frame_augment": "none", "frame_shift": 0.0,
+        "frame_roll": 0.0, "rare_states": 0.0, "encoder_depth": None, "encoder_layers": None,
+        "encoder_first_stride": 2, "encoder_pool": "flatten", "filter_read": "sample"}
+
     recipe: str = "paper"
     """The named recipe this config started from (:data:`RECIPES`), kept as a label with the
     run and its agent bundle; the fields below are what ran."""
@@ -81,12 +85,6 @@ class DistilConfig:
     """Posterior states that start Eq. 4's rollouts; 0 = every step of every window."""
     shared_draws: bool = True
     """Teacher and student sample their latents from the same uniform draws."""
-    filter_read: str = "sample"
-    """How both filters take z from their posteriors along Eq. 3's windows: ``sample`` (the
-    paper) or ``mean``, the class probabilities, which makes both filters deterministic, so
-    the student's h carries its own errors along the window instead of following the
-    teacher's draws; a student so trained acts with ``twist-eval --posterior mean`` (not in
-    the paper; see docs/findings.md)."""
     copy_dynamics: bool = True
     """Start the student's RSSM from the teacher's (False: from scratch, as the paper)."""
     freeze_dynamics: bool = False
@@ -115,19 +113,6 @@ class DistilConfig:
     encoder_norm: str = "none"
     """Normalisation in the student's CNN: ``none`` (DreamerV2's, the paper's) or ``layer``
     (see :class:`~twist_models.config.CNNConfig`)."""
-    encoder_depth: int | None = None
-    """Channels of the student CNN's first convolution (doubled at each layer); None: the
-    size preset's (48 ``paper``, 24 ``quick``)."""
-    encoder_layers: int | None = None
-    """How many of the preset's convolutions the student CNN keeps, from the first (None: all
-    four, 64 -> 31 -> 14 -> 6 -> 2 pixels)."""
-    encoder_first_stride: int = 2
-    """Stride of the student CNN's first convolution (2: the paper's; 4: non-overlapping
-    4x4 patches, which leaves three convolutions room: ``encoder_layers=3``)."""
-    encoder_pool: str = "flatten"
-    """How the student CNN's last map becomes its features: ``flatten`` (the paper's) or
-    ``keypoints``, each channel's softmax-weighted position
-    (:class:`~twist_models.networks.Keypoints`; not in the paper)."""
     view: int | None = None
     """Camera view shown at every step; None: a random one of the K per step."""
     frame_post_weight: float = 0.0
@@ -142,17 +127,6 @@ class DistilConfig:
     own state encoder and filter, copied and fixed (:mod:`twist_models.readout`); its first
     stage regresses the state one frame shows, and any ``steps`` then train the CNN with
     Eq. 3/4 through the fixed filter (not in the paper)."""
-    readout_weights: str = "robust"
-    """How a read-out student's first stage weighs its errors (on D's typical frames,
-    :data:`~twist_models.readout.TYPICAL_SPREADS`): ``robust``, each component's error in
-    units of its robust spread over D (an angle's error for a (cos, sin) pair), squared, or
-    ``sensitivity``, each read component's squared error times the
-    teacher actor's squared sensitivity to it at that step
-    (:func:`~twist_models.frame_targets.actor_sensitivity`; measured worse: the cosine,
-    which the actor barely weighs, is then read 0.33 off upright and the teacher's encoder
-    sees a pole that is not there, docs/findings.md), or ``frame``: ``robust`` with each
-    frame weighted by the teacher actor's summed sensitivity there (mean 1 over D), so that
-    frames whose errors the actor ignores (a fallen pole) weigh little."""
     readout_frames: str = "auto"
     """Which of D's frames the read-out's first stage trains on: ``typical`` (every read
     component within :data:`~twist_models.readout.TYPICAL_SPREADS` robust spreads of its
@@ -187,21 +161,8 @@ class DistilConfig:
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
     frame_batch: int = 64
     """Frames per update of the first stage."""
-    frame_augment: str = "none"
-    """Augmentation of the first stage's frames: ``none`` or ``colour``
-    (:func:`~twist_models.augmentation.colour_jitter`: channel order, gain and offset drawn
-    per frame)."""
-    frame_shift: float = 0.0
-    """Largest move, in pixels along each image axis, of each first-stage frame (the targets
-    unmoved: :func:`~twist_models.augmentation.camera_jitter`; 0: none, the paper)."""
-    frame_roll: float = 0.0
-    """Largest roll, radians about the frame's centre, of each first-stage frame (0: none)."""
     frame_eval_every: int = 500
     """First-stage updates between held-out evaluations and checkpoints."""
-    rare_states: float = 0.0
-    """Draw training windows favouring D's rarely visited states, with this exponent (see
-    :func:`twist_data.sampler.state_rarity`; 0: uniform, the paper; held-out windows stay
-    uniform)."""
     precision: str = "float32"
     """Arithmetic of the student's CNN in training: ``float32``; ``bfloat16`` (autocast: the
     weights stay float32); ``auto``: bfloat16 on CUDA and on CPUs with native bfloat16
@@ -250,7 +211,7 @@ class DistilConfig:
                          "frame_batch", "frame_eval_every")
         require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
                              "post_weight", "imagined_weight", "action_weight", "workers",
-                             "rare_states", "frame_post_weight", "state_weight", "frame_steps",
+                             "frame_post_weight", "state_weight", "frame_steps",
                              "steps")
         if self.steps == 0 and self.frame_steps == 0:
             raise ConfigError("steps must be > 0 unless a first stage trains (frame_steps), "
@@ -269,25 +230,7 @@ class DistilConfig:
         if self.holdout_every < 2:
             raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
-        require_choice(self, "encoder_pool", CNN_POOLS)
-        # Checked against the size preset's CNN here, so that the messages name these fields.
-        kernels = PRESETS[self.student].get("cnn", CNNConfig()).encoder_kernels
-        if not 1 <= self.encoder_first_stride <= kernels[0]:
-            raise ConfigError(f"encoder_first_stride must be 1 to {kernels[0]} (the first "
-                              f"kernel's side), got {self.encoder_first_stride}")
-        if self.encoder_layers is not None and not 1 <= self.encoder_layers <= len(kernels):
-            raise ConfigError(f"encoder_layers must be 1 to {len(kernels)} convolutions or null, "
-                              f"got {self.encoder_layers}")
-        if self.encoder_depth is not None and self.encoder_depth < 1:
-            raise ConfigError(f"encoder_depth must be a positive number of channels or null, "
-                              f"got {self.encoder_depth}")
-        require_choice(self, "readout_weights", ("robust", "sensitivity", "frame"))
         require_choice(self, "readout_frames", ("auto", "typical", "all"))
-        require_choice(self, "frame_augment", ("none", "colour"))
-        require_non_negative(self, "frame_shift", "frame_roll")
-        if self.frame_roll > MAX_ROLL:
-            raise ConfigError(f"frame_roll must be at most {MAX_ROLL:.4f} radians (a quarter "
-                              f"turn), got {self.frame_roll}")
         require_choice(self, "readout_mirror", READOUT_MIRRORS)
         if self.readout_mirror != "none" and not self.readout:
             raise ConfigError(f"readout_mirror={self.readout_mirror!r} averages a read-out "
@@ -302,8 +245,6 @@ class DistilConfig:
         require_choice(self, "readout_first_velocity", ("read", "zero"))
         require_choice(self, "stage_optimiser", ("reset", "keep"))
         require_choice(self, "resident_data", ("auto", "on", "off"))
-        # The mode has no gradient to train the student's posterior through.
-        require_choice(self, "filter_read", ("sample", "mean"))
         if self.view is not None and self.view < 0:
             raise ConfigError(f"view must be >= 0, got {self.view}")
         if self.freeze_dynamics and not self.copy_dynamics:
@@ -318,10 +259,9 @@ class DistilConfig:
 
     @property
     def needs_teacher_targets(self) -> bool:
-        """Whether the teacher's filter over D is needed: for the ``dense`` terms, a read-out
-        weighted by the actor's sensitivity, or windows started from the teacher's latent."""
+        """Whether the teacher's filter over D is needed: for the ``dense`` terms, or windows
+        started from the teacher's latent."""
         return (self.frame_post_weight > 0 or self.state_weight > 0
-                or (self.readout and self.readout_weights != "robust")
                 or self.window_start == "teacher")
 
     @property
@@ -335,8 +275,7 @@ class DistilConfig:
         return SamplerConfig(length=self.length + self.window_context,
                              batch_size=batch_size or self.batch_size,
                              view=self.view, seed=seed, keys=KEYS,
-                             holdout_every=self.holdout_every, split=split,
-                             rare_states=self.rare_states if split == "train" else 0.0)
+                             holdout_every=self.holdout_every, split=split)
 
 
 #: Ways a read-out student may use the task's mirror symmetry (``readout_mirror``).
@@ -496,12 +435,11 @@ class Distillation(nn.Module):
         with torch.no_grad():
             wm = self.teacher.world_model
             t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
-                                              start, post_draws, self.config.filter_read)
+                                              start, post_draws)
         with precision_autocast(self.config.precision, is_first.device):
             embed = self.student.embed(batch["image"], is_first,
                                        batch.get("image_before")).float()
-        s_post, s_prior = self.student.rssm.observe(embed, action, is_first, start, post_draws,
-                                                    self.config.filter_read)
+        s_post, s_prior = self.student.rssm.observe(embed, action, is_first, start, post_draws)
         terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
         return s_post, t_post, terms, embed
 

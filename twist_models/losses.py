@@ -155,12 +155,10 @@ def weighted_state_loss(prediction: torch.Tensor, state: torch.Tensor, weight: t
     return (weight.detach() * (prediction - state.detach()) ** 2).sum(-1).mean()
 
 
-def readout_loss(errors: torch.Tensor, delta: float = 1.0,
-                 frame_weight: torch.Tensor | None = None) -> torch.Tensor:
+def readout_loss(errors: torch.Tensor, delta: float = 1.0) -> torch.Tensor:
     """Huber loss of read-out errors in units of their robust spread, quadratic up to
-    ``delta`` spreads and linear beyond: errors [..., R] and optional per-frame weights
-    [...] -> [] (the mean over frames and components). Linear far out, so that a fallen pole,
-    many robust spreads away, cannot outweigh the lean near upright."""
-    loss = F.huber_loss(errors.float(), torch.zeros_like(errors, dtype=torch.float32),
-                        reduction="none", delta=delta).mean(-1)
-    return (loss if frame_weight is None else frame_weight.detach() * loss).mean()
+    ``delta`` spreads and linear beyond: errors [..., R] -> [] (the mean over frames and
+    components). Linear far out, so that a fallen pole, many robust spreads away, cannot
+    outweigh the lean near upright."""
+    return F.huber_loss(errors.float(), torch.zeros_like(errors, dtype=torch.float32),
+                        delta=delta)

@@ -72,30 +72,8 @@ class StateEncoder(MLP):
         self.out_dim = config.units
 
 
-class Keypoints(nn.Module):
-    """Spatial softmax: a feature map [N, C, H, W] -> [N, 2C], each channel's expected (x, y)
-    in [-1, 1] under a softmax over its pixels at a learned temperature. Where a flattened map
-    must learn a position as a pattern of weights over pixels, this gives it as a number."""
-
-    def __init__(self, height: int, width: int) -> None:
-        super().__init__()
-        self.log_temperature = nn.Parameter(torch.zeros(()))
-        ys, xs = torch.meshgrid(torch.linspace(-1, 1, height), torch.linspace(-1, 1, width),
-                                indexing="ij")
-        # Fixed by the map's shape, so not saved: [H*W, 2] as (x, y).
-        self.register_buffer("grid", torch.stack([xs.flatten(), ys.flatten()], -1),
-                             persistent=False)
-
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
-        # float32 throughout: an expectation in bfloat16 would keep ~3 digits of a position.
-        logits = features.float().flatten(2) / self.log_temperature.exp()
-        weights = torch.softmax(logits, -1).unsqueeze(-1)  # [N, C, H*W, 1]
-        return (weights * self.grid).sum(-2).flatten(1)  # products, not a matmul autocast casts
-
-
 class ImageEncoder(nn.Module):
-    """DreamerV2's CNN: uint8 or [-0.5, 0.5] images [..., 64, 64, 3] -> [..., 1536] (depth 48),
-    or each last channel's keypoint (``CNNConfig.pool``)."""
+    """DreamerV2's CNN: uint8 or [-0.5, 0.5] images [..., 64, 64, 3] -> [..., 1536] (depth 48)."""
 
     def __init__(self, config: CNNConfig) -> None:
         super().__init__()
@@ -112,18 +90,13 @@ class ImageEncoder(nn.Module):
         size = config.encoder_map_sizes()[-1]
         self.net = nn.Sequential(*layers)
         self.image_size = config.image_size
-        if config.pool == "keypoints":
-            self.pool: nn.Module = Keypoints(size, size)
-            self.out_dim = 2 * channels
-        else:
-            self.pool = nn.Flatten()
-            self.out_dim = channels * size * size
+        self.out_dim = channels * size * size
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         lead = image.shape[:-3]
         x = preprocess_image(image).reshape(-1, *image.shape[-3:]).permute(0, 3, 1, 2)
         x = x.contiguous(memory_format=torch.channels_last)
-        return self.pool(self.net(x)).reshape(*lead, self.out_dim)
+        return self.net(x).reshape(*lead, self.out_dim)
 
 
 def preprocess_image(image: torch.Tensor) -> torch.Tensor:

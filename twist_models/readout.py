@@ -29,7 +29,7 @@ from torch import nn
 
 from twist_data.errors import ConfigError
 from twist_models.config import MLPConfig, ReadOutConfig
-from twist_models.losses import readout_loss, weighted_state_loss
+from twist_models.losses import readout_loss
 from twist_models.networks import StateEncoder
 
 #: The least correlation between a velocity and the difference it is paired with. Measured:
@@ -187,18 +187,10 @@ class StateReadOut(nn.Module):
         self._angular = [(k, position[v[1]], position[v[2]])
                          for k, v in enumerate(config.velocities) if len(v) == 3]
 
-    def loss(self, features: torch.Tensor, state: torch.Tensor,
-             weight: torch.Tensor | None = None, frame_weight: torch.Tensor | None = None
-             ) -> torch.Tensor:
-        """The first stage's term: CNN features [..., F], the true state [..., S] and per
-        component weights [..., S] -> []: the Huber loss of :meth:`errors`, each frame
-        weighted by ``frame_weight`` [...] if given (:func:`~twist_models.losses.readout_loss`),
-        or with component weights the weighted squared
-        error of the read components (:func:`~twist_models.losses.weighted_state_loss`)."""
-        if weight is not None:
-            read = list(self.config.read)
-            return weighted_state_loss(self.read(features), state[..., read], weight[..., read])
-        return readout_loss(self.errors(self.read(features), state), HUBER_DELTA, frame_weight)
+    def loss(self, features: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """The first stage's term: CNN features [..., F] and the true state [..., S] -> []:
+        the Huber loss of :meth:`errors` (:func:`~twist_models.losses.readout_loss`)."""
+        return readout_loss(self.errors(self.read(features), state), HUBER_DELTA)
 
     def read(self, features: torch.Tensor) -> torch.Tensor:
         """The read components in the state's units, as the head gives them: [..., F] ->

@@ -1,15 +1,15 @@
 """How much does a distilled student's posterior rely on the image?
 
-On held-out windows of D, both filters run as in distillation (``filter_read=mean``, so
-the figures carry no sampling noise) with the student's images left alone (``normal``, the
-baseline of the same run) and then corrupted three ways: each window given another
-window's images (``other_window``), the window's first image held for every step
-(``first_image_held``: no motion) and black frames (``black``). For each: the posterior KL
-to the teacher's, the share of the teacher's h variance the student's h reproduces, and the
-correlation of the teacher's actor (mode) on the student's latent with it on the teacher's,
-over all steps and over the second half of each window. A student that reads the scene
-loses much of its agreement when the images are wrong; one that does not has learned to
-follow its h (and through it the teacher's past actions) instead.
+On held-out windows of D, both filters run as in distillation but on their posteriors' means
+(the class probabilities, so the figures carry no sampling noise), with the student's images
+left alone (``normal``, the baseline of the same run) and then corrupted three ways: each
+window given another window's images (``other_window``), the window's first image held for
+every step (``first_image_held``: no motion) and black frames (``black``). For each: the
+posterior KL to the teacher's, the share of the teacher's h variance the student's h
+reproduces, and the correlation of the teacher's actor (mode) on the student's latent with
+it on the teacher's, over all steps and over the second half of each window. A student that
+reads the scene loses much of its agreement when the images are wrong; one that does not has
+learned to follow its h (and through it the teacher's past actions) instead.
 
 Prints one JSON line per condition. ``python research/probes/image_reliance.py DATASET RUN
 TEACHER [--windows 64] [--length 50]`` (RUN: a ``twist-distil`` output folder).
@@ -26,8 +26,9 @@ import torch
 
 from twist_data.reader import open_dataset
 from twist_data.sampler import WindowSampler
-from twist_models.distillation import Distillation
+from twist_models.losses import distillation_loss
 from twist_models.stages.distill import load_student, stored_config
+from twist_models.student import Student
 from twist_models.teacher import Teacher, load_teacher
 
 Batch = dict[str, torch.Tensor]
@@ -45,11 +46,14 @@ def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 @torch.no_grad()
-def agreement(objective: Distillation, teacher: Teacher, batch: Batch) -> dict[str, float]:
-    s_post, t_post, terms, _ = objective.filter(batch)
+def agreement(student: Student, teacher: Teacher, batch: Batch) -> dict[str, float]:
+    wm, action, is_first = teacher.world_model, batch["action"], batch["is_first"]
+    t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first, read="mean")
+    s_post, s_prior = student.observe(batch["image"], action, is_first, read="mean")
+    terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
     actor = teacher.actor_critic.actor
-    t_action = actor(teacher.world_model.rssm.feature(t_post)).mode  # [B, L, A]
-    s_action = actor(objective.student.rssm.feature(s_post)).mode
+    t_action = actor(wm.rssm.feature(t_post)).mode  # [B, L, A]
+    s_action = actor(student.rssm.feature(s_post)).mode
     variance = t_post["deter"].flatten(0, -2).var(0).mean()
     h_mse = ((s_post["deter"] - t_post["deter"]) ** 2).mean()
     half = t_action.shape[1] // 2
@@ -71,17 +75,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     args = parser.parse_args()
     torch.manual_seed(0)
-    config = dataclasses.replace(stored_config(args.run), filter_read="mean",
-                                 length=args.length)
+    config = dataclasses.replace(stored_config(args.run), length=args.length)
     student = load_student(f"{args.run}/student.pt")[0].eval()
     teacher = load_teacher(args.teacher)[0].eval()
     sampler = WindowSampler(open_dataset(args.dataset),
                             config.sampler("heldout", args.seed, args.windows))
     batch = {k: torch.as_tensor(v) for k, v in sampler.batch().items()}
-    objective = Distillation(student, teacher, config)
     for name, corrupt in CORRUPTIONS.items():
         print(json.dumps({"run": args.run, "condition": name,
-                          **agreement(objective, teacher, {**batch, "image": corrupt(batch["image"])})}))
+                          **agreement(student, teacher, {**batch, "image": corrupt(batch["image"])})}))
 
 
 if __name__ == "__main__":

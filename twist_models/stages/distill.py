@@ -49,7 +49,6 @@ from twist_data.seeding import derived_seed
 from twist_data.staging import removed_on_failure, require_memory
 from twist_data.tasks import state_mirror
 from twist_models.agent import Agent
-from twist_models.augmentation import camera_jitter, colour_jitter
 from twist_models.checkpoint import (
     move_optimiser_state,
     read_checkpoint,
@@ -192,10 +191,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
                                     readout=_pair_readout(data, rows, teacher_model,
                                                           _mirror_mode(config, data),
                                                           config.readout_lean)
-                                    if rows is not None else None,
-                                    depth=config.encoder_depth,
-                                    layers=config.encoder_layers, pool=config.encoder_pool,
-                                    first_stride=config.encoder_first_stride)
+                                    if rows is not None else None)
     spec = data.spec
     require_memory(config.batch_size * (config.length + config.window_context)
                    * int(np.prod(spec.image_shape)) * 4,
@@ -396,8 +392,7 @@ class _Run:
     def _teacher_targets(self) -> TeacherTargets:
         c = self.config
         train = np.flatnonzero(~heldout_episodes(self.data.n_episodes, c.holdout_every))
-        return teacher_targets(self.teacher, self.data, train, read=c.filter_read,
-                               seed=derived_seed(c.seed, 6))
+        return teacher_targets(self.teacher, self.data, train, seed=derived_seed(c.seed, 6))
 
     def _optimiser(self) -> torch.optim.Optimizer:
         o = self.config.optim
@@ -576,8 +571,8 @@ class _Run:
         batches = FrameBatches(self.data, self.rows, c.frame_batch, c.frames, c.view,
                                seed=derived_seed(c.seed, 7, self.frame_updates, self.rank))
         params = [p for p in self.student.parameters() if p.requires_grad]
-        jitter = torch.Generator().manual_seed(derived_seed(c.seed, 9, self.frame_updates,
-                                                            self.rank))
+        flips = torch.Generator().manual_seed(derived_seed(c.seed, 9, self.frame_updates,
+                                                           self.rank))
         mirror = (torch.tensor(_mirror(self.data)) if _mirror_mode(c, self.data) == "augment"
                   else None)
         sums: dict[str, float] = {}
@@ -588,23 +583,14 @@ class _Run:
             tick = time.perf_counter()
             batch = batches.batch()
             if mirror is not None:  # each frame mirrored with probability 1/2, with its state
-                flip = torch.rand(len(batch["state"]), generator=jitter) < 0.5
+                flip = torch.rand(len(batch["state"]), generator=flips) < 0.5
                 batch["image"][flip] = batch["image"][flip].flip(-2)
                 batch["state"][flip] = batch["state"][flip] * mirror
-            if c.frame_augment == "colour":
-                batch["image"] = colour_jitter(batch["image"], jitter)
-            if c.frame_shift or c.frame_roll:
-                batch["image"] = camera_jitter(batch["image"], c.frame_shift, c.frame_roll,
-                                               jitter)
             batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
             with precision_autocast(c.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
             if self.student.readout is not None:
-                weight = batch.get("sensitivity") if c.readout_weights == "sensitivity" else None
-                frame_weight = (batch["sensitivity"].mean(-1) if c.readout_weights == "frame"
-                                else None)
-                terms = {"readout": self.student.readout.loss(embed, batch["state"], weight,
-                                                              frame_weight)}
+                terms = {"readout": self.student.readout.loss(embed, batch["state"])}
                 loss = terms["readout"]
             else:
                 terms = frame_terms(self.student, self.teacher, embed, batch["deter"],

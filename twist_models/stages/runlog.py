@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 
 from twist_data.errors import ConfigError, TwistError
 from twist_data.staging import require_writable
-from twist_models.config import from_json, to_json
+from twist_models.config import from_json, removed_fields, to_json
 
 T = TypeVar("T")
 
@@ -102,7 +102,9 @@ def resume_conflicts(before: Mapping[str, Any], config: Any,
     """``name was X, now Y`` for every field of the config dataclass ``config`` outside
     ``mutable`` that a resumed run would change, against ``before``, the run's stored config
     (JSON). A field ``before`` lacks was added after that run began; every new field's default
-    keeps the behaviour of the versions before it, so the run is compared with that default."""
+    keeps the behaviour of the versions before it, so the run is compared with that default. A
+    field since removed conflicts unless the run left it off
+    (:func:`~twist_models.config.removed_fields`)."""
     now = to_json(config)
     defaults = to_json(type(config)())
     conflicts = []
@@ -110,6 +112,9 @@ def resume_conflicts(before: Mapping[str, Any], config: Any,
         was = before.get(name, defaults.get(name))
         if name not in mutable and was != value:
             conflicts.append(f"{name} was {was!r}, now {value!r}")
+    for name, off in removed_fields(type(config)).items():
+        if name in before and before[name] != off:
+            conflicts.append(f"{name} was {before[name]!r} and has been removed")
     return conflicts
 
 
