@@ -181,7 +181,8 @@ class StateReadOut(nn.Module):
         self.encoder = StateEncoder(config.state_dim, config.encoder)
         self.out_dim = self.encoder.out_dim
         position = {i: k for k, i in enumerate(config.read)}
-        self._angles = [(position[c], position[s]) for c, s in config.angles]
+        #: Each (cos, sin) pair's slots in the read vector.
+        self.angle_slots = [(position[c], position[s]) for c, s in config.angles]
         self._linear = [(k, position[v[1]]) for k, v in enumerate(config.velocities)
                         if len(v) == 2]
         self._angular = [(k, position[v[1]], position[v[2]])
@@ -205,10 +206,10 @@ class StateReadOut(nn.Module):
         it component by component spends the CNN on what the filter does not need."""
         truth = state[..., list(self.config.read)]
         errors = read - truth
-        if not self._angles:
+        if not self.angle_slots:
             return errors / self.scale
         parts = list(errors.unbind(-1))
-        for c, s in self._angles:
+        for c, s in self.angle_slots:
             parts[s] = wrapped(torch.atan2(read[..., s], read[..., c])
                                - torch.atan2(truth[..., s], truth[..., c]))
             parts[c] = torch.sqrt(read[..., c] ** 2 + read[..., s] ** 2) - 1.0
@@ -238,10 +239,10 @@ class StateReadOut(nn.Module):
         read = self.read(features)
         if mirrored is not None:
             read = (read + self.mirror * self.read(mirrored)) / 2
-        if not self._angles:
+        if not self.angle_slots:
             return read
         parts = list(read.unbind(-1))
-        for c, s in self._angles:
+        for c, s in self.angle_slots:
             norm = torch.sqrt(parts[c] ** 2 + parts[s] ** 2).clamp_min(1e-6)
             parts[c], parts[s] = parts[c] / norm, parts[s] / norm
             if self.config.lean != 1.0:

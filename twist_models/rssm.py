@@ -119,7 +119,7 @@ class RSSM(nn.Module):
 
     def _prior(self, deter: torch.Tensor, sample: bool = True,
                uniform: torch.Tensor | None = None) -> State:
-        logits = self._logits(self.img_out(deter))
+        logits = self.prior_logits(deter)
         stoch = sample_one_hot(logits, uniform) if sample else _mode(logits)
         return {"deter": deter, "logits": logits, "stoch": stoch}
 
@@ -144,6 +144,10 @@ class RSSM(nn.Module):
         else:
             require_posterior_read(read)
         return {"deter": deter, "logits": logits, "stoch": stoch}
+
+    def prior_logits(self, deter: torch.Tensor) -> torch.Tensor:
+        """p(z_t | h_t) as logits [..., S, C] from ``deter`` [..., D]."""
+        return self._logits(self.img_out(deter))
 
     def posterior_logits(self, deter: torch.Tensor, embed: torch.Tensor) -> torch.Tensor:
         """q(z_t | h_t, e_t) as logits [..., S, C] from ``deter`` [..., D] and ``embed``

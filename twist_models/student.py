@@ -46,8 +46,8 @@ class Student(nn.Module):
         the teacher's embedding of the state read along them [B, T, E'], the first step's
         velocities from the frame ``before`` each window (uint8 [B, H, W, 3]) where given."""
         if self.readout is not None:
-            positions = self._read_positions(image)
-            previous = None if before is None else self._read_positions(before)
+            positions = self.read_positions(image)
+            previous = None if before is None else self.read_positions(before)
             return self._embed_state(self.readout.window_state(positions, is_first, previous))
         return stack_frames(self.encoder(image), is_first, self.config.frames)
 
@@ -58,12 +58,14 @@ class Student(nn.Module):
         history): the embeddings of earlier frames (:func:`step_frames`), or a read-out
         student's last read-out [N, R]."""
         if self.readout is not None:
-            positions = self._read_positions(image)
+            positions = self.read_positions(image)
             previous = positions if history is None else history
             return self._embed_state(self.readout.state(positions, previous)), positions
         return step_frames(self.encoder(image), history, self.config.frames)
 
-    def _read_positions(self, image: torch.Tensor) -> torch.Tensor:
+    def read_positions(self, image: torch.Tensor) -> torch.Tensor:
+        """A read-out student's reading of uint8 images [..., H, W, 3] -> [..., R]: what its
+        filter is handed before the velocities are derived."""
         # A background never seen biases one reading and its mirror image's differently: the
         # mean of both errs less (cartpole's held-out scenes: 0.50 -> 0.36 degrees of bias on
         # the pole; research/log.md, "Does reading the mirror image too hold the lost

@@ -101,7 +101,7 @@ def main() -> None:
                                          "upright_steps": int(upright.sum())}
             for name, h in (("own", own_h), ("other", other_h)):
                 a_t = act(h, wm.rssm.posterior_logits(h, wm.embed(state)))
-                a_p = act(h, wm.rssm._logits(wm.rssm.img_out(h)))
+                a_p = act(h, wm.rssm.prior_logits(h))
                 a_s = act(h, student.rssm.posterior_logits(h, embed))
                 result[name] = scores(a_t, a_p, a_s)
                 result[f"{name}_upright"] = scores(a_t[upright], a_p[upright], a_s[upright])

@@ -22,17 +22,34 @@ checked, refused otherwise.
 from __future__ import annotations
 
 import argparse
-import types
 from pathlib import Path
 
 import torch
 
 from twist_models.agent import Agent
 from twist_models.stages.evaluation import EvalConfig, ImageAgent, run_evaluation
+from twist_models.student import Student
+
+
+class EnsembleStudent(Student):
+    """The first member, reading each image as the mean of every member's read-out."""
+
+    def __init__(self, members: list[Student]) -> None:
+        super().__init__(members[0].config)
+        self.load_state_dict(members[0].state_dict())
+        self.members = members  # a plain list: their weights are not this module's
+
+    def read_positions(self, image: torch.Tensor) -> torch.Tensor:
+        read = torch.stack([member.read_positions(image) for member in self.members]).mean(0)
+        parts = list(read.unbind(-1))
+        for c, s in self.readout.angle_slots:  # each pair back on the unit circle
+            norm = torch.sqrt(parts[c] ** 2 + parts[s] ** 2).clamp_min(1e-6)
+            parts[c], parts[s] = parts[c] / norm, parts[s] / norm
+        return torch.stack(parts, -1)
 
 
 def ensemble_reading(members: list[Agent]) -> Agent:
-    """The first member, reading each image as the mean of every member's read-out."""
+    """The first member's agent, its student reading as :class:`EnsembleStudent`."""
     head = members[0].student
     for other in members[1:]:
         readout = other.student.readout
@@ -40,23 +57,8 @@ def ensemble_reading(members: list[Agent]) -> Agent:
                 and torch.allclose(readout.gains, head.readout.gains, rtol=1e-6)):
             raise SystemExit("the members were not distilled from the same D (their read-out "
                              "standardisation or velocity gains differ)")
-    students = [m.student for m in members]
-
-    def read_positions(self, image: torch.Tensor) -> torch.Tensor:
-        reads = []
-        for student in students:
-            mirrored = (student.encoder(image.flip(-2)) if student.readout.config.mirror
-                        else None)
-            reads.append(student.readout.positions(student.encoder(image), mirrored))
-        read = torch.stack(reads).mean(0)
-        parts = list(read.unbind(-1))
-        for c, s in head.readout._angles:
-            norm = torch.sqrt(parts[c] ** 2 + parts[s] ** 2).clamp_min(1e-6)
-            parts[c], parts[s] = parts[c] / norm, parts[s] / norm
-        return torch.stack(parts, -1)
-
     ensemble = members[0]
-    ensemble.student._read_positions = types.MethodType(read_positions, ensemble.student)
+    ensemble.student = EnsembleStudent([m.student for m in members]).eval()
     return ensemble
 
 

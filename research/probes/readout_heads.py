@@ -197,7 +197,7 @@ def main() -> None:
         student = Agent.load(args.agent).student
         readings = {"image": lambda im: student.readout.read(student.encoder(im))}
         if student.readout.config.mirror:  # the agent's own reading: the mean with the mirror's
-            readings["mirror-averaged"] = student._read_positions
+            readings["mirror-averaged"] = student.read_positions
         for reading, read in readings.items():
             print(json.dumps({"head": "agent", "agent": str(args.agent), "reading": reading,
                               **sweep(read, args.scenes)}), flush=True)

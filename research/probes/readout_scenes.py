@@ -19,8 +19,14 @@ exceeds ``--bad`` (a scene where the pole is not read). With ``--trajectories`` 
 one line per evaluated episode instead: the errors along the agent's own states before the
 pole first leans past ``--near`` degrees, and after.
 
+With ``--components`` (any task, not cartpole's lean alone) it prints per setting each read
+component's RMS error in the state's units and the median and worst scene's RMS error in D's
+robust spreads (the read-out's training units): a gap between ``train`` and ``heldout`` is
+what the CNN loses on background kinds it never saw, apart from any closed-loop effect.
+
 ``python research/probes/readout_scenes.py AGENT.pt DATASET [--settings stored,heldout]
-[--backgrounds DIR] [--episodes 30] [--near 10] [--bad 0.05] [--trajectories EVAL/trajectories]``
+[--backgrounds DIR] [--episodes 30] [--near 10] [--bad 0.05] [--trajectories EVAL/trajectories]
+[--components]``
 """
 
 from __future__ import annotations
@@ -119,6 +125,28 @@ def trajectory_errors(agent: Agent, dataset, folder: Path, name: str, seed: int,
                                     if fall < len(state) else None)}), flush=True)
 
 
+def component_errors(agent: Agent, dataset, episodes: np.ndarray, settings: list[str],
+                     backgrounds: str | None, seed: int) -> None:
+    """One JSON line per setting: each read component's RMS error and the scenes' errors in
+    robust spreads."""
+    readout = agent.student.readout
+    read = list(readout.config.read)
+    scale = readout.scale.numpy().astype(np.float64)
+    for setting in settings:
+        frames = rendered(dataset, episodes, setting, backgrounds, seed)
+        errors, scenes = [], []
+        for index, images in zip(episodes, frames, strict=True):
+            error = read_positions(agent, images) - dataset.episode(int(index)).state[:, read]
+            errors.append(error)
+            scenes.append(float(np.sqrt(np.mean((error / scale) ** 2))))
+        error = np.concatenate(errors).astype(np.float64)
+        print(json.dumps({"setting": setting, "episodes": len(scenes), "read_components": read,
+                          "rmse": np.sqrt((error ** 2).mean(0)).round(4).tolist(),
+                          "scene_rms_spreads_median": round(float(np.median(scenes)), 3),
+                          "scene_rms_spreads_worst": round(float(np.max(scenes)), 3)}),
+              flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("agent")
@@ -133,6 +161,8 @@ def main() -> None:
     parser.add_argument("--trajectories", type=Path, default=None,
                         help="twist-eval --save-trajectories folder: read along its episodes")
     parser.add_argument("--name", default="readout", help="the agent's name there")
+    parser.add_argument("--components", action="store_true",
+                        help="every read component's error, for any task")
     args = parser.parse_args()
     torch.set_grad_enabled(False)
     agent = Agent.load(args.agent)
@@ -145,6 +175,10 @@ def main() -> None:
         return
     held = np.flatnonzero(heldout_episodes(dataset.n_episodes, args.holdout_every))
     episodes = held[:args.episodes]
+    if args.components:
+        component_errors(agent, dataset, episodes, args.settings.split(","), args.backgrounds,
+                         args.seed)
+        return
     read_index = list(agent.student.readout.config.read)
     near_sine = math.sin(math.radians(args.near))
     for setting in args.settings.split(","):
