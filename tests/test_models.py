@@ -49,7 +49,8 @@ def test_image_cnn_shapes_match_dreamerv2() -> None:
 def test_a_layer_normed_cnn_ignores_the_scale_of_its_convolutions() -> None:
     # Normalising each image's activations makes the encoder indifferent to a positive
     # rescaling of a convolution's weights and bias; DreamerV2's plain CNN is not.
-    image = torch.randint(0, 256, (2, 64, 64, 3), dtype=torch.uint8)
+    image = torch.randint(0, 256, (2, 64, 64, 3), dtype=torch.uint8,
+                          generator=torch.Generator().manual_seed(0))
     for norm, invariant in (("layer", True), ("none", False)):
         torch.manual_seed(0)
         encoder = ImageEncoder(CNNConfig(depth=4, norm=norm))
@@ -58,7 +59,8 @@ def test_a_layer_normed_cnn_ignores_the_scale_of_its_convolutions() -> None:
         with torch.no_grad():
             conv.weight.mul_(3.0)
             conv.bias.mul_(3.0)
-        assert torch.allclose(encoder(image), before, atol=1e-4) == invariant, norm
+        # GroupNorm's epsilon keeps the invariance approximate: ~1e-4 of outputs of ~1.
+        assert torch.allclose(encoder(image), before, atol=1e-3) == invariant, norm
     with pytest.raises(ConfigError, match="'batch'"):
         CNNConfig(norm="batch")
 
