@@ -96,7 +96,7 @@ def main() -> None:
     teacher = Teacher(teacher_preset(args.preset, STATE, ACTIONS)).to_device(device)
     config = distil_preset(args.preset, args.recipe)
     student = Student(student_preset(args.preset, teacher.config, 64, norm=config.encoder_norm,
-                                     state_head=config.state_weight > 0)).to(device)
+                                     state_head=config.weights.state > 0)).to(device)
     batch = window_batch(teacher, device)
     updates: dict[str, Callable[[], None]] = {}
     compile_s: dict[str, float] = {}
@@ -111,7 +111,7 @@ def main() -> None:
     medians = {v: statistics.median(s) for v, s in samples.items()}
     print(json.dumps({
         "benchmark": "distil_compile", "preset": args.preset, "recipe": args.recipe,
-        "precision": resolve_precision(config.precision, device),
+        "precision": resolve_precision(config.compute.precision, device),
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "threads": torch.get_num_threads(), "batch": B, "length": L,
         "imag_starts": config.imag_starts, "median_s": {k: round(v, 4) for k, v in medians.items()},

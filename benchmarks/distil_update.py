@@ -16,7 +16,6 @@ Targets: data wait < 5% of step time (CPU and GPU); >= 25 updates/s on an H100 (
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import statistics
 import tempfile
@@ -52,11 +51,13 @@ def main() -> None:
         torch.manual_seed(0)
         teacher = Teacher(teacher_preset(args.preset, 5, 1))
         teacher_path = save_teacher(root / "teacher.pt", teacher)
-        config = dataclasses.replace(
-            distil_preset(args.preset), steps=args.updates, batch_size=16, length=50,
-            horizon=15, imag_starts=args.imag_starts, workers=args.workers,
-            eval_every=args.updates, checkpoint_every=args.updates,
-            snapshot_every=10 * args.updates, holdout_every=4, heldout_windows=4)
+        config = distil_preset(
+            args.preset, steps=args.updates, batch_size=16, length=50, horizon=15,
+            imag_starts=args.imag_starts, **{
+                "compute.workers": args.workers, "schedule.eval_every": args.updates,
+                "schedule.checkpoint_every": args.updates,
+                "schedule.snapshot_every": 10 * args.updates, "schedule.holdout_every": 4,
+                "schedule.heldout_windows": 4})
         summary = distil(dataset, root / "run", config, teacher=teacher_path, device=args.device)
 
         # Baseline: the same objective on one batch already on the device.

@@ -17,7 +17,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 
 from twist_data.errors import ConfigError, TwistError
-from twist_models.config import field_types, from_json
+from twist_models.config import field_types, from_json, moved_fields
 
 P = TypeVar("P")
 T = TypeVar("T")
@@ -127,10 +127,11 @@ def parse_settings(pairs: list[str], config_type: type) -> dict[str, Any]:
     by dotted keys, ``optim.grad_clip=50``), for :func:`~twist_models.config.replace_fields`;
     each VALUE is read as JSON (numbers, true/false, null) or else taken as a string."""
     hints = field_types(config_type)
-    fields = set(hints)
+    fields, moved = set(hints), moved_fields(config_type)
     settings: dict[str, Any] = {}
     for pair in pairs:
         key, sep, text = pair.partition("=")
+        key = moved.get(key, key)  # a field's name from before it moved into a nested config
         if not sep or key not in fields:
             raise ConfigError(f"--set takes KEY=VALUE with KEY one of {', '.join(sorted(fields))}; "
                               f"got {pair!r}")

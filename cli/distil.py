@@ -62,7 +62,7 @@ def main(
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
     settings: Annotated[list[str] | None, typer.Option(
         "--set", help="Override any DistilConfig field, KEY=VALUE (repeatable), e.g. "
-                      "--set action_weight=10 --set lr=1e-3.")] = None,
+                      "--set weights.action=10 --set lr=1e-3.")] = None,
 ) -> None:
     """Train a student world model to put domain-randomised images into the teacher's latent
     space (TWIST Eq. 3 and Eq. 4), offline, and write a deployable agent bundle."""

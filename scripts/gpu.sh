@@ -52,7 +52,7 @@ COMPILE="${COMPILE:-$([[ "$PRESET" == tiny ]] && echo off || echo on)}"
 DISTIL_SETTINGS=()
 if [[ "$DEVICE" == cuda* ]]; then
   COLLECT_SETTINGS+=(--set "compile=$COMPILE")
-  DISTIL_SETTINGS=(--set "compile=$([[ "$COMPILE" == on ]] && echo true || echo false)")
+  DISTIL_SETTINGS=(--set "compute.compile=$([[ "$COMPILE" == on ]] && echo true || echo false)")
 fi
 # The caller's settings come last, so they override the script's.
 for setting in ${COLLECT_SET:-}; do COLLECT_SETTINGS+=(--set "$setting"); done

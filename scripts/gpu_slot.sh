@@ -52,8 +52,8 @@ if [[ ! -d "$OUT/dataset" ]]; then
         --workers "${WORKERS:-$(nproc)}" --accept-other-gl
 fi
 
-SETTINGS=(--set "snapshot_every=$SNAPSHOT_EVERY" --set "eval_every=$SNAPSHOT_EVERY"
-          --set "checkpoint_every=$SNAPSHOT_EVERY" --set "compile=$COMPILE")
+SETTINGS=(--set "schedule.snapshot_every=$SNAPSHOT_EVERY" --set "schedule.eval_every=$SNAPSHOT_EVERY"
+          --set "schedule.checkpoint_every=$SNAPSHOT_EVERY" --set "compute.compile=$COMPILE")
 for setting in ${DISTIL_SET:-}; do SETTINGS+=(--set "$setting"); done
 RESUME=()
 if [[ -f "$OUT/student/config.json" ]]; then RESUME=(--resume); fi

@@ -416,8 +416,9 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
         "longer than every episode": ["--teacher", str(teacher), "--length", "500", "--out",
                                       str(tmp_path / "c")],
         "one final teacher": ["--out", str(tmp_path / "d")],  # synthetic data has none
-        "action_weight must be >= 0, got -1": ["--teacher", str(teacher), "--set",
-                                               "action_weight=-1", "--out", str(tmp_path / "g")],
+        "LossWeights.action must be >= 0, got -1": ["--teacher", str(teacher), "--set",
+                                                    "weights.action=-1", "--out",
+                                                    str(tmp_path / "g")],
         "encoder_norm must be one of none, layer, got 'batch'": [
             "--teacher", str(teacher), "--set", "encoder_norm=batch", "--out", str(tmp_path / "i")],
         "KEY one of": ["--teacher", str(teacher), "--set", "nope=1", "--out",
@@ -493,13 +494,30 @@ def test_a_csv_log_keeps_its_own_columns_when_a_newer_version_appends(tmp_path) 
 def test_a_run_stored_before_a_config_field_existed_resumes_under_its_default() -> None:
     config = distil_preset("tiny", steps=20)
     stored = to_json(config)
-    del stored["action_weight"]  # as a run saved before the field was added stores it
+    del stored["weights"]["action"]  # as a run saved before the field was added stores it
     assert resume_conflicts(stored, dataclasses.replace(config, steps=40), ("steps",)) == []
-    changed = resume_conflicts(stored, dataclasses.replace(config, action_weight=2.0), ("steps",))
-    assert changed == ["action_weight was 0.0, now 2.0"]
+    changed = resume_conflicts(stored, distil_preset("tiny", steps=20, **{"weights.action": 2.0}),
+                               ("steps",))
+    assert changed == ["weights.action was 0.0, now 2.0"]
     stored["length"] = 9
     assert resume_conflicts(stored, config, ("steps",)) == [
         f"length was 9, now {config.length}"]
+
+
+def test_a_run_recorded_before_fields_moved_loads_resumes_and_takes_old_settings() -> None:
+    config = distil_preset("tiny", "dense", steps=20)
+    stored = to_json(config)
+    flat = {k: v for k, v in stored.items() if k not in ("weights", "schedule", "compute")}
+    flat.update({f"{k}_weight": v for k, v in stored["weights"].items()})
+    flat.update(stored["schedule"])
+    flat.update(stored["compute"])  # as a run recorded before the groups existed stores it
+    assert from_json(DistilConfig, flat) == config
+    assert resume_conflicts(flat, config, ("steps",)) == []
+    changed = replace_fields(config, {"snapshot_every": 7, "state_weight": 0.5})
+    assert (changed.schedule.snapshot_every, changed.weights.state) == (7, 0.5)
+    assert resume_conflicts(flat, changed, ("steps",)) == [
+        "weights.state was 1.0, now 0.5", "schedule.snapshot_every was 4, now 7"]
+    assert parse_settings(["snapshot_every=7"], DistilConfig) == {"schedule.snapshot_every": 7}
 
 
 def test_a_run_recorded_with_a_removed_switch_loads_only_where_it_was_off() -> None:

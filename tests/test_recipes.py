@@ -256,7 +256,7 @@ def test_the_recipe_travels_with_the_run_and_the_bundle(
         inputs: tuple[Path, Path, Teacher], tmp_path: Path) -> None:
     dataset, teacher_path, _ = inputs
     config = distil_preset("tiny", "dense", frame_steps=4, frame_eval_every=2)
-    assert (config.frame_post_weight, config.state_weight) == (1.0, 1.0)
+    assert (config.weights.frame_post, config.weights.state) == (1.0, 1.0)
     assert config.window_start == "teacher" and not config.shared_draws
     summary = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
     assert stored_config(tmp_path / "run") == config

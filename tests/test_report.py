@@ -16,6 +16,7 @@ import pytest
 
 from twist_data.errors import ConfigError, UnknownTaskError
 from twist_data.reader import open_dataset
+from twist_models.config import json_leaves, to_json
 from twist_models.stages.report import (
     AGENTS,
     EPISODE_RESULT_COLUMNS,
@@ -182,20 +183,20 @@ def test_tiny_pipeline_trains_every_column_and_resumes_without_repeating(tmp_pat
     assert not stored("twist-scratch")["distil"]["copy_dynamics"]
     assert not stored("twist-no-imagined")["distil"]["imagined"]
     assert stored("twist-no-noise")["distil"]["action_noise"] == 0.0
-    assert stored("twist")["distil"]["action_weight"] == 0.0
-    assert stored("twist-action")["distil"]["action_weight"] > 0.0
+    assert stored("twist")["distil"]["weights"]["action"] == 0.0
+    assert stored("twist-action")["distil"]["weights"]["action"] > 0.0
     assert stored("twist")["distil"]["recipe"] == "paper"
     dense = stored("twist-dense")["distil"]
     assert dense["recipe"] == "dense" and dense["frame_steps"] > 0
-    assert dense["state_weight"] > 0 and dense["frame_post_weight"] > 0
+    assert dense["weights"]["state"] > 0 and dense["weights"]["frame_post"] > 0
     for name, field, off in (("twist-dense-no-stage", "frame_steps", 0),
-                             ("twist-dense-no-state", "state_weight", 0.0),
-                             ("twist-dense-no-frame-kl", "frame_post_weight", 0.0),
+                             ("twist-dense-no-state", "weights.state", 0.0),
+                             ("twist-dense-no-frame-kl", "weights.frame_post", 0.0),
                              ("twist-dense-no-norm", "encoder_norm", "none")):
-        ablated = stored(name)["distil"]
+        ablated = json_leaves(stored(name)["distil"])
         assert ablated[field] == off and ablated["recipe"] == "dense"
         assert {k: v for k, v in ablated.items() if k != field} == {
-            k: v for k, v in dense.items() if k != field}
+            k: v for k, v in json_leaves(dense).items() if k != field}
     student_steps = stored("twist")["distil"]["steps"]
     readout = stored("twist-readout")["distil"]
     assert readout["recipe"] == "readout" and readout["readout"] and readout["frame_steps"] > 0
@@ -291,4 +292,5 @@ def test_every_student_column_is_an_agent_with_a_valid_recipe() -> None:
         base = distil_preset("tiny", recipe, steps=DISTIL_PRESETS["tiny"].steps)
         config = distil_preset("tiny", recipe, **{"steps": base.steps, **changes})
         # Each ablation changes exactly what it names, and changes something.
-        assert {k for k in changes if getattr(config, k) != getattr(base, k)} == set(changes), name
+        now, before = json_leaves(to_json(config)), json_leaves(to_json(base))
+        assert {k for k in changes if now[k] != before[k]} == set(changes), name

@@ -494,11 +494,42 @@ def json_safe(value: Any) -> Any:
     return value
 
 
+def json_leaves(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A config's JSON (:func:`to_json`) as {dotted name: value} of its leaves, nested configs
+    opened (``schedule.eval_every``), as ``--set`` names them."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, Mapping):
+            out.update(json_leaves(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
 def removed_fields(cls: type) -> Mapping[str, Any]:
     """The fields ``cls`` once had and no longer has, each with the value that meant "off":
     its ``REMOVED`` class attribute (a settings switch that no recipe used is removed, and a
     run recorded before keeps loading as long as it left the switch off)."""
     return getattr(cls, "REMOVED", {})
+
+
+def moved_fields(cls: type) -> Mapping[str, str]:
+    """The fields ``cls`` once had at its top level and now holds in a nested config, each
+    with its dotted new name: its ``MOVED`` class attribute."""
+    return getattr(cls, "MOVED", {})
+
+
+def with_moved(cls: type, data: Mapping[str, Any]) -> dict[str, Any]:
+    """A stored config of ``cls`` with the top-level fields that since moved into nested
+    configs put where they are now (:func:`moved_fields`), so that a run recorded before
+    loads, resumes and compares as it was."""
+    moved = moved_fields(cls)
+    out = {k: v for k, v in data.items() if k not in moved}
+    for old, new in moved.items():
+        if old in data:
+            head, _, name = new.partition(".")
+            out[head] = {**out.get(head, {}), name: data[old]}
+    return out
 
 
 def without_removed(cls: type, data: Mapping[str, Any]) -> dict[str, Any]:
@@ -523,7 +554,7 @@ def from_json(cls: type[T], data: Mapping[str, Any]) -> T:
     errors, except a removed field (:func:`removed_fields`) at its "off" value, which is
     dropped; one at any other value is refused, since the run it records used code that is
     gone."""
-    data = without_removed(cls, data)
+    data = without_removed(cls, with_moved(cls, data))
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     removed = removed_fields(cls)
     for name in sorted(set(data) - set(fields)):
@@ -578,12 +609,15 @@ def field_types(config_type: type) -> dict[str, Any]:
 
 def replace_fields(config: T, settings: Mapping[str, Any]) -> T:
     """``config`` with the fields in ``settings`` replaced; a dotted key (``optim.grad_clip``)
-    replaces a field of a nested config and keeps its other fields. An unknown field is a
-    :class:`ConfigError` naming it."""
+    replaces a field of a nested config and keeps its other fields, and a field's name from
+    before it moved into a nested config (:func:`moved_fields`) reaches it there, as a stored
+    run's does. An unknown field is a :class:`ConfigError` naming it."""
     top: dict[str, Any] = {}
     nested: dict[str, dict[str, Any]] = {}
     names = {f.name for f in dataclasses.fields(config)}  # type: ignore[arg-type]
+    moved = moved_fields(type(config))
     for key, value in settings.items():
+        key = moved.get(key, key)
         head, dot, rest = key.partition(".")
         if head not in names:
             raise ConfigError(f"{type(config).__name__} has no field {key!r}")

@@ -51,6 +51,87 @@ KEYS = ("image", "state", "action", "is_first")
 WINDOW_STARTS = ("zero", "teacher")
 
 @dataclass(frozen=True)
+class LossWeights:
+    """How the distillation terms are weighed: the paper's objective is Eq. 3's three terms
+    and Eq. 4 at 1 and nothing else."""
+
+    h: float = 1.0
+    """||h_teacher - h_student||^2 on data (Eq. 3)."""
+    prior: float = 1.0
+    """KL(prior_student || prior_teacher) on data (Eq. 3)."""
+    post: float = 1.0
+    """KL(posterior_student || posterior_teacher) on data (Eq. 3)."""
+    imagined: float = 1.0
+    """The whole imagined term (Eq. 4)."""
+    action: float = 0.0
+    """Action matching: the teacher's actor on the student's posterior against it on the
+    teacher's (not in the paper)."""
+    frame_post: float = 0.0
+    """The per-frame posterior term: KL of the student's posterior to the teacher's, both at
+    the teacher's h (:mod:`twist_models.frame_targets`; not in the paper)."""
+    state: float = 0.0
+    """The per-frame state read-out term, each state component weighted by the teacher
+    actor's sensitivity to it (adds a linear state head to the student; not in the paper)."""
+
+    def __post_init__(self) -> None:
+        require_non_negative(self, "h", "prior", "post", "imagined", "action", "frame_post",
+                             "state")
+
+
+@dataclass(frozen=True)
+class DistilSchedule:
+    """When a distillation run evaluates, checkpoints and snapshots, and on what."""
+
+    holdout_every: int = 10
+    """Every n-th episode of D is held out for the agreement metrics and never trained on."""
+    heldout_windows: int = 16
+    """Windows in the fixed held-out batch."""
+    eval_every: int = 1_000
+    """Updates between held-out evaluations (and metrics.csv rows)."""
+    frame_eval_every: int = 500
+    """First-stage updates between held-out evaluations and checkpoints."""
+    checkpoint_every: int = 1_000
+    """Updates between writes of ``latest.pt``."""
+    snapshot_every: int = 10_000
+    """Updates between kept ``student-<updates>.pt`` and ``agent-<updates>.pt`` snapshots."""
+
+    def __post_init__(self) -> None:
+        require_positive(self, "heldout_windows", "eval_every", "frame_eval_every",
+                         "checkpoint_every", "snapshot_every")
+        if self.holdout_every < 2:
+            raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
+
+
+@dataclass(frozen=True)
+class DistilCompute:
+    """How a distillation run computes: none of it changes the objective."""
+
+    precision: str = "float32"
+    """Arithmetic of the student's CNN in training: ``float32``; ``bfloat16`` (autocast: the
+    weights stay float32); ``auto``: bfloat16 on CUDA and on CPUs with native bfloat16
+    (AVX512-BF16 or AMX, where it trains ~2x the frames per second:
+    ``benchmarks/encoder_speed.py``), float32 elsewhere, where it would be slower."""
+    compile: bool = False
+    """Run the window objective (Eq. 3/4 and the terms beside them, forward and the backward
+    through it) through ``torch.compile`` (:func:`compiled_objective`): on a CUDA device whole
+    and captured as CUDA graphs, on a CPU its two filters in compiled pieces; the optimiser
+    step stays eager. Off by default: it pays on a GPU, barely on a CPU
+    (docs/performance.md)."""
+    workers: int = 1
+    """DataLoader processes decoding windows (0: decode in the training process)."""
+    resident_data: str = "auto"
+    """Gather training windows from a copy of D decoded once on the training device
+    (:class:`twist_data.sampler.ResidentWindows`, the same stream as ``workers=0``): ``on``,
+    ``off``, or ``auto``: on for a CUDA device where the copy takes at most half its free
+    memory, off elsewhere (on a CPU the decode is a few percent of an update)."""
+
+    def __post_init__(self) -> None:
+        require_choice(self, "precision", PRECISIONS)
+        require_choice(self, "resident_data", ("auto", "on", "off"))
+        require_non_negative(self, "workers")
+
+
+@dataclass(frozen=True)
 class DistilConfig:
     """One distillation run: student size, batches, the losses and the schedule. The defaults
     are the paper's objective (the ``paper`` recipe); :data:`RECIPES` name other starting
@@ -62,6 +143,16 @@ class DistilConfig:
         "readout_weights": "robust", "frame_augment": "none", "frame_shift": 0.0,
         "frame_roll": 0.0, "rare_states": 0.0, "encoder_depth": None, "encoder_layers": None,
         "encoder_first_stride": 2, "encoder_pool": "flatten", "filter_read": "sample"}
+    #: Fields that moved into the nested configs, by their old names (a run recorded before
+    #: loads and resumes under them, :func:`~twist_models.config.moved_fields`).
+    MOVED: ClassVar[dict[str, str]] = {
+        **{f"{w}_weight": f"weights.{w}" for w in ("h", "prior", "post", "imagined", "action",
+                                                   "frame_post", "state")},
+        **{name: f"schedule.{name}" for name in ("holdout_every", "heldout_windows", "eval_every",
+                                                 "frame_eval_every", "checkpoint_every",
+                                                 "snapshot_every")},
+        **{name: f"compute.{name}" for name in ("precision", "compile", "workers",
+                                                "resident_data")}}
 
     recipe: str = "paper"
     """The named recipe this config started from (:data:`RECIPES`), kept as a label with the
@@ -91,17 +182,6 @@ class DistilConfig:
     """Keep the copied transition (the GRU, its input layer and the prior head) fixed, so
     only the encoder and the posterior head learn: the student's h is then the teacher's
     recurrence run on the student's z (needs ``copy_dynamics``; not in the paper)."""
-    h_weight: float = 1.0
-    """Weight of ||h_teacher - h_student||^2 on data (Eq. 3)."""
-    prior_weight: float = 1.0
-    """Weight of KL(prior_student || prior_teacher) on data (Eq. 3)."""
-    post_weight: float = 1.0
-    """Weight of KL(posterior_student || posterior_teacher) on data (Eq. 3)."""
-    imagined_weight: float = 1.0
-    """Weight of the whole imagined term (Eq. 4)."""
-    action_weight: float = 0.0
-    """Weight of the action-matching term: the teacher's actor on the student's posterior
-    against it on the teacher's (not in the paper; 0: the paper's objective)."""
     window_start: str = "zero"
     """Latent both filters start each training window from: ``zero`` (the paper's: h = 0,
     z = 0 mid-episode) or ``teacher`` (the teacher's own latent at the step before, filtered
@@ -115,13 +195,6 @@ class DistilConfig:
     (see :class:`~twist_models.config.CNNConfig`)."""
     view: int | None = None
     """Camera view shown at every step; None: a random one of the K per step."""
-    frame_post_weight: float = 0.0
-    """Weight of the per-frame posterior term: KL of the student's posterior to the
-    teacher's, both at the teacher's h (:mod:`twist_models.frame_targets`; 0: off, the
-    paper)."""
-    state_weight: float = 0.0
-    """Weight of the per-frame state read-out term, each state component weighted by the
-    teacher actor's sensitivity to it (adds a linear state head to the student; 0: off)."""
     readout: bool = False
     """The student reads the teacher's state from each image and hands it to the teacher's
     own state encoder and filter, copied and fixed (:mod:`twist_models.readout`); its first
@@ -161,74 +234,41 @@ class DistilConfig:
     Eq. 3/4 (0: none, the paper): many cheap encoder updates instead of few whole ones."""
     frame_batch: int = 64
     """Frames per update of the first stage."""
-    frame_eval_every: int = 500
-    """First-stage updates between held-out evaluations and checkpoints."""
-    precision: str = "float32"
-    """Arithmetic of the student's CNN in training: ``float32``; ``bfloat16`` (autocast: the
-    weights stay float32); ``auto``: bfloat16 on CUDA and on CPUs with native bfloat16
-    (AVX512-BF16 or AMX, where it trains ~2x the frames per second:
-    ``benchmarks/encoder_speed.py``), float32 elsewhere, where it would be slower."""
-    compile: bool = False
-    """Run the window objective (Eq. 3/4 and the terms beside them, forward and the backward
-    through it) through ``torch.compile`` (:func:`compiled_objective`): on a CUDA device whole
-    and captured as CUDA graphs, on a CPU its two filters in compiled pieces; the optimiser
-    step stays eager. Off by default: on a 2-core CPU the ``dense`` recipe's ``quick`` window
-    update ran 1.16x eager after a minute of compiling, while the whole single-frame stage
-    (most of a run) gains nothing; on an H200 the benchmark's Eq. 3 update ran 14x faster
-    compiled, and the ``dense`` recipe's whole window objective (Eq. 3, Eq. 4 and the
-    per-frame terms) ran 49 updates/s after ~4 minutes of compiling (docs/performance.md)."""
     lr: float = 3e-4
     """Adam learning rate of the student (DreamerV2's world-model rate)."""
     optim: OptimConfig = field(default_factory=OptimConfig)
     """Adam epsilon, gradient clip and weight decay."""
     seed: int = 0
     """Seed of the student's initialisation, the windows and the sampling draws."""
-    holdout_every: int = 10
-    """Every n-th episode of D is held out for the agreement metrics and never trained on."""
-    heldout_windows: int = 16
-    """Windows in the fixed held-out batch."""
-    eval_every: int = 1_000
-    """Updates between held-out evaluations (and metrics.csv rows)."""
-    checkpoint_every: int = 1_000
-    """Updates between writes of ``latest.pt``."""
-    snapshot_every: int = 10_000
-    """Updates between kept ``student-<updates>.pt`` snapshots."""
-    workers: int = 1
-    """DataLoader processes decoding windows (0: decode in the training process)."""
-    resident_data: str = "auto"
-    """Gather training windows from a copy of D decoded once on the training device
-    (:class:`twist_data.sampler.ResidentWindows`, the same stream as ``workers=0``): ``on``,
-    ``off``, or ``auto``: on for a CUDA device where the copy takes at most half its free
-    memory, off elsewhere (on a CPU the decode is a few percent of an update)."""
+    weights: LossWeights = field(default_factory=LossWeights)
+    """How the distillation terms are weighed."""
+    schedule: DistilSchedule = field(default_factory=DistilSchedule)
+    """When the run evaluates, checkpoints and snapshots, and on what."""
+    compute: DistilCompute = field(default_factory=DistilCompute)
+    """How the run computes (precision, compiling, data loading)."""
 
     def __post_init__(self) -> None:
         if self.student not in PRESETS:
             raise ConfigError(f"unknown student preset {self.student!r}; valid presets are: "
                               f"{', '.join(PRESETS)}")
         require_choice(self, "recipe", tuple(RECIPES))
-        require_positive(self, "batch_size", "length", "horizon", "frames", "lr",
-                         "heldout_windows", "eval_every", "checkpoint_every", "snapshot_every",
-                         "frame_batch", "frame_eval_every")
-        require_non_negative(self, "action_noise", "imag_starts", "h_weight", "prior_weight",
-                             "post_weight", "imagined_weight", "action_weight", "workers",
-                             "frame_post_weight", "state_weight", "frame_steps",
-                             "steps")
+        require_positive(self, "batch_size", "length", "horizon", "frames", "lr", "frame_batch")
+        require_non_negative(self, "action_noise", "imag_starts", "frame_steps", "steps")
         if self.steps == 0 and self.frame_steps == 0:
             raise ConfigError("steps must be > 0 unless a first stage trains (frame_steps), "
                               "got steps=0 and frame_steps=0")
         if self.frame_steps and not self.frame_terms:
             raise ConfigError(f"frame_steps={self.frame_steps} trains on the per-frame terms "
-                              "alone, but frame_post_weight and state_weight are both 0 and "
+                              "alone, but weights.frame_post and weights.state are both 0 and "
                               "the student does not read the state (readout)")
-        if self.readout and (self.frames != 1 or self.state_weight or self.frame_post_weight
+        w = self.weights
+        if self.readout and (self.frames != 1 or w.state or w.frame_post
                              or not self.copy_dynamics):
             raise ConfigError("a read-out student reads one frame per step into the teacher's "
                               "copied filter and learns from its read-out alone in the first "
-                              f"stage; got frames={self.frames}, state_weight="
-                              f"{self.state_weight}, frame_post_weight={self.frame_post_weight}, "
+                              f"stage; got frames={self.frames}, weights.state={w.state}, "
+                              f"weights.frame_post={w.frame_post}, "
                               f"copy_dynamics={self.copy_dynamics}")
-        if self.holdout_every < 2:
-            raise ConfigError(f"holdout_every must be >= 2, got {self.holdout_every}")
         require_choice(self, "encoder_norm", CNN_NORMS)
         require_choice(self, "readout_frames", ("auto", "typical", "all"))
         require_choice(self, "readout_mirror", READOUT_MIRRORS)
@@ -240,11 +280,9 @@ class DistilConfig:
         if self.readout_lean != 1.0 and not self.readout:
             raise ConfigError(f"readout_lean={self.readout_lean} leans a read-out's angles; "
                               "only a read-out student (readout) has one")
-        require_choice(self, "precision", PRECISIONS)
         require_choice(self, "window_start", WINDOW_STARTS)
         require_choice(self, "readout_first_velocity", ("read", "zero"))
         require_choice(self, "stage_optimiser", ("reset", "keep"))
-        require_choice(self, "resident_data", ("auto", "on", "off"))
         if self.view is not None and self.view < 0:
             raise ConfigError(f"view must be >= 0, got {self.view}")
         if self.freeze_dynamics and not self.copy_dynamics:
@@ -255,13 +293,13 @@ class DistilConfig:
     def frame_terms(self) -> bool:
         """Whether per-frame terms train: the ``dense`` ones (which need the teacher's
         targets over D) or a read-out student's."""
-        return self.frame_post_weight > 0 or self.state_weight > 0 or self.readout
+        return self.weights.frame_post > 0 or self.weights.state > 0 or self.readout
 
     @property
     def needs_teacher_targets(self) -> bool:
         """Whether the teacher's filter over D is needed: for the ``dense`` terms, or windows
         started from the teacher's latent."""
-        return (self.frame_post_weight > 0 or self.state_weight > 0
+        return (self.weights.frame_post > 0 or self.weights.state > 0
                 or self.window_start == "teacher")
 
     @property
@@ -275,7 +313,7 @@ class DistilConfig:
         return SamplerConfig(length=self.length + self.window_context,
                              batch_size=batch_size or self.batch_size,
                              view=self.view, seed=seed, keys=KEYS,
-                             holdout_every=self.holdout_every, split=split)
+                             holdout_every=self.schedule.holdout_every, split=split)
 
 
 #: Ways a read-out student may use the task's mirror symmetry (``readout_mirror``).
@@ -296,9 +334,9 @@ AUTO_MIRROR = "augment"
 #: was measured to give).
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {},
-    "dense": {"encoder_norm": "layer", "frame_post_weight": 1.0, "state_weight": 1.0,
-              "precision": "auto", "window_start": "teacher", "shared_draws": False},
-    "readout": {"readout": True, "encoder_norm": "layer", "precision": "auto",
+    "dense": {"encoder_norm": "layer", "weights.frame_post": 1.0, "weights.state": 1.0,
+              "compute.precision": "auto", "window_start": "teacher", "shared_draws": False},
+    "readout": {"readout": True, "encoder_norm": "layer", "compute.precision": "auto",
                 "readout_mirror": "auto", "readout_lean": 1.25, "readout_first_velocity": "read",
                 "stage_optimiser": "reset"},
 }
@@ -323,12 +361,16 @@ DISTIL_PRESETS: dict[str, DistilConfig] = {
     # CPU demo (~1 s per update on 2 cores, the CNN on 800 frames dominates): quick sizes,
     # Eq. 4 from 256 states per update; windows decoded in-process, since a loader process
     # takes a core from the update on a 2-core machine (benchmarks/distil_update.py).
-    "quick": DistilConfig(student="quick", steps=800, imag_starts=256, eval_every=50,
-                          checkpoint_every=50, snapshot_every=400, workers=0),
+    "quick": DistilConfig(student="quick", steps=800, imag_starts=256,
+                          schedule=DistilSchedule(eval_every=50, checkpoint_every=50,
+                                                  snapshot_every=400),
+                          compute=DistilCompute(workers=0)),
     # Tests: seconds.
     "tiny": DistilConfig(student="tiny", steps=6, batch_size=2, length=8, horizon=3,
-                         imag_starts=8, eval_every=3, checkpoint_every=2, snapshot_every=4,
-                         holdout_every=4, heldout_windows=2, workers=0),
+                         imag_starts=8,
+                         schedule=DistilSchedule(holdout_every=4, heldout_windows=2, eval_every=3,
+                                                 checkpoint_every=2, snapshot_every=4),
+                         compute=DistilCompute(workers=0)),
 }
 
 
@@ -371,9 +413,9 @@ def split_context(batch: Mapping[str, torch.Tensor], context: int) -> dict[str, 
 def frame_loss(terms: Mapping[str, torch.Tensor], config: DistilConfig) -> torch.Tensor:
     """The per-frame terms weighted by ``config`` (a student without a state head has no
     ``state`` term)."""
-    loss = config.frame_post_weight * terms["frame_post_kl"]
+    loss = config.weights.frame_post * terms["frame_post_kl"]
     if "state" in terms:
-        loss = loss + config.state_weight * terms["state"]
+        loss = loss + config.weights.state * terms["state"]
     return loss
 
 
@@ -404,19 +446,19 @@ class Distillation(nn.Module):
         """Total loss [] and every term [] for a batch of windows ({k: [B, L, ...]})."""
         c = self.config
         s_post, t_post, terms, embed = self.filter(batch)
-        loss = (c.h_weight * terms["h"] + c.prior_weight * terms["prior_kl"]
-                + c.post_weight * terms["post_kl"])
+        w = c.weights
+        loss = w.h * terms["h"] + w.prior * terms["prior_kl"] + w.post * terms["post_kl"]
         if c.frame_terms:
             frame = self.window_frame_terms(embed, t_post, batch["state"])
             terms.update(frame)
             loss = loss + frame_loss(frame, c)
-        if c.action_weight > 0:
+        if w.action > 0:
             terms["action"] = self.action_term(s_post, t_post)
-            loss = loss + c.action_weight * terms["action"]
-        if c.imagined and c.imagined_weight > 0:
+            loss = loss + w.action * terms["action"]
+        if c.imagined and w.imagined > 0:
             imagined = self.imagined_terms(s_post, t_post)
             terms.update({f"imagined_{k}": v for k, v in imagined.items()})
-            loss = loss + c.imagined_weight * (imagined["h"] + imagined["prior_kl"])
+            loss = loss + w.imagined * (imagined["h"] + imagined["prior_kl"])
         return loss, terms
 
     def filter(self, batch: Mapping[str, torch.Tensor]
@@ -436,7 +478,7 @@ class Distillation(nn.Module):
             wm = self.teacher.world_model
             t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
                                               start, post_draws)
-        with precision_autocast(self.config.precision, is_first.device):
+        with precision_autocast(self.config.compute.precision, is_first.device):
             embed = self.student.embed(batch["image"], is_first,
                                        batch.get("image_before")).float()
         s_post, s_prior = self.student.rssm.observe(embed, action, is_first, start, post_draws)

@@ -10,7 +10,7 @@ Never touches a simulator: it reads D and a frozen teacher checkpoint and writes
 ``summary.json``.
 
 * **Held-out agreement** is measured on a fixed batch of windows from the held-out episodes
-  (every ``holdout_every``-th episode, never trained on), with fixed draws, so its curve
+  (every ``schedule.holdout_every``-th episode, never trained on), with fixed draws, so its curve
   moves only because the student changes.
 * **Resume** restores the student, its optimiser and the torch RNG from ``latest.pt``; the
   window stream restarts from a seed derived from (seed, update), so a resumed run is
@@ -128,7 +128,7 @@ class DistilError(TwistError):
 # -- the run ------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Progress:
-    """Reported every ``eval_every`` updates."""
+    """Reported every ``schedule.eval_every`` updates."""
 
     updates: int
     total: int
@@ -187,7 +187,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     rows = _training_rows(data, config) if config.readout else None
     student_config = student_preset(config.student, teacher_model.config, data.spec.image_height,
                                     config.frames, config.encoder_norm,
-                                    state_head=config.state_weight > 0,
+                                    state_head=config.weights.state > 0,
                                     readout=_pair_readout(data, rows, teacher_model,
                                                           _mirror_mode(config, data),
                                                           config.readout_lean)
@@ -230,7 +230,7 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
 
 def _training_rows(data: MatchingDataset, config: DistilConfig) -> FrameRows:
     return FrameRows.of(data, np.flatnonzero(~heldout_episodes(data.n_episodes,
-                                                               config.holdout_every)))
+                                                               config.schedule.holdout_every)))
 
 
 def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher,
@@ -282,8 +282,8 @@ def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resum
                and (stored is None or not same_student(stored, student)) else [])
     # frame_steps may grow on resume: the first stage's loss still falls where a preset stops
     # it, and continuing costs only the added updates (research/log.md).
-    folder.open(config, resume, ("steps", "frame_steps", "compile"),
-                "--steps and --set frame_steps, compile",
+    folder.open(config, resume, ("steps", "frame_steps", "compute.compile"),
+                "--steps and --set frame_steps, compute.compile",
                 also=changed)
     return stored if stored is not None else student
 
@@ -369,7 +369,7 @@ class _Run:
             self.objective = nn.parallel.DistributedDataParallel(
                 self.objective, device_ids=[device.index] if device.type == "cuda" else None)
         # A whole graph is for training only: evaluation runs other shapes and would recompile.
-        self.compiled_mode = compile_mode("on" if config.compile else "off", device)
+        self.compiled_mode = compile_mode("on" if config.compute.compile else "off", device)
         self.train_objective: Callable[..., Any] = compiled_objective(self.objective,
                                                                       self.compiled_mode)
         self.heldout = self._heldout_batch()
@@ -391,7 +391,7 @@ class _Run:
 
     def _teacher_targets(self) -> TeacherTargets:
         c = self.config
-        train = np.flatnonzero(~heldout_episodes(self.data.n_episodes, c.holdout_every))
+        train = np.flatnonzero(~heldout_episodes(self.data.n_episodes, c.schedule.holdout_every))
         return teacher_targets(self.teacher, self.data, train, seed=derived_seed(c.seed, 6))
 
     def _optimiser(self) -> torch.optim.Optimizer:
@@ -403,10 +403,10 @@ class _Run:
         c = self.config
         try:
             sampler = WindowSampler(self.data, c.sampler("heldout", derived_seed(c.seed, 1),
-                                                         c.heldout_windows))
+                                                         c.schedule.heldout_windows))
         except TwistError as exc:
-            raise DistilError(f"no held-out windows (every {c.holdout_every}th episode is held "
-                              f"out): {exc}; lower holdout_every or the window length") from None
+            raise DistilError(f"no held-out windows (every {c.schedule.holdout_every}th episode is held "
+                              f"out): {exc}; lower schedule.holdout_every or the window length") from None
         return split_context(_to_device(sampler.batch(), self.device),
                              c.window_context)
 
@@ -419,17 +419,17 @@ class _Run:
                 return iter(ResidentWindows(self.data, sampler, self.device, self.rank,
                                             self.world))
             windows = WindowDataset(self.dataset_path, sampler)
-            loader = DataLoader(windows, batch_size=None, num_workers=c.workers,
+            loader = DataLoader(windows, batch_size=None, num_workers=c.compute.workers,
                                 pin_memory=self.device.type == "cuda",
-                                persistent_workers=c.workers > 0,
-                                prefetch_factor=4 if c.workers else None)
+                                persistent_workers=c.compute.workers > 0,
+                                prefetch_factor=4 if c.compute.workers else None)
         except TwistError as exc:
             raise DistilError(f"no training windows: {exc}") from None
         return iter(loader)
 
     def _resident(self, keys: tuple[str, ...]) -> bool:
         """Whether training windows come from a copy of D on the device (``resident_data``)."""
-        choice = self.config.resident_data
+        choice = self.config.compute.resident_data
         if choice != "auto":
             return choice == "on"
         if self.device.type != "cuda":
@@ -519,7 +519,7 @@ class _Run:
                 record["wait"] += waited
                 record["done"] += 1
             self.updates += 1
-            if (self.updates % c.eval_every == 0 or self.updates == c.steps
+            if (self.updates % c.schedule.eval_every == 0 or self.updates == c.steps
                     or self._out_of_time()):
                 now = time.perf_counter()
                 self.seconds, wall = self.seconds + now - wall, now
@@ -527,7 +527,7 @@ class _Run:
                        "updates_per_s": interval["done"] / interval["train"],
                        "data_wait_share": interval["wait"] / interval["train"],
                        **{k: v / interval["done"] for k, v in sums.items()}}
-                heldout = self.evaluate(plot=_plots_at(self.updates, c.eval_every, c.steps))
+                heldout = self.evaluate(plot=_plots_at(self.updates, c.schedule.eval_every, c.steps))
                 if self.writes:
                     append_csv(self.out / "metrics.csv", row, METRIC_COLUMNS)
                     for key in (*TERMS, "loss"):
@@ -538,14 +538,14 @@ class _Run:
                                          row["updates_per_s"], row["data_wait_share"],
                                          row["loss"], heldout["h_mse"]))
                 sums, interval = {}, {"train": 0.0, "wait": 0.0, "done": 0}
-            if (self.updates % c.checkpoint_every == 0 or self.updates == c.steps
+            if (self.updates % c.schedule.checkpoint_every == 0 or self.updates == c.steps
                     or self._out_of_time()):
                 self._checkpoint(self.run_folder.latest)
-            if self.updates % c.snapshot_every == 0:
+            if self.updates % c.schedule.snapshot_every == 0:
                 self._snapshot()
         self.seconds += time.perf_counter() - wall
         stopped_early = self.updates < c.steps or not first_stage_done
-        if stopped_early and self.updates and self.updates % c.snapshot_every:
+        if stopped_early and self.updates and self.updates % c.schedule.snapshot_every:
             self._snapshot()  # where a time limit stopped it is a point of its curve too
         student = self._checkpoint(self.out / FINAL_STUDENT)
         agent = self._bundle(self.out / AGENT)
@@ -587,7 +587,7 @@ class _Run:
                 batch["image"][flip] = batch["image"][flip].flip(-2)
                 batch["state"][flip] = batch["state"][flip] * mirror
             batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
-            with precision_autocast(c.precision, self.device):  # most recent frame first:
+            with precision_autocast(c.compute.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
             if self.student.readout is not None:
                 terms = {"readout": self.student.readout.loss(embed, batch["state"])}
@@ -610,13 +610,13 @@ class _Run:
             spent += time.perf_counter() - tick
             done += 1
             self.frame_updates += 1
-            if (self.frame_updates % c.frame_eval_every == 0
+            if (self.frame_updates % c.schedule.frame_eval_every == 0
                     or self.frame_updates == c.frame_steps or self._out_of_time()):
                 now = time.perf_counter()
                 self.seconds, wall = self.seconds + now - wall, now
                 row = {"frame_updates": self.frame_updates, "wall_s": round(self.seconds, 2),
                        "updates_per_s": done / spent, **{k: v / done for k, v in sums.items()}}
-                heldout = self.evaluate(plot=_plots_at(self.frame_updates, c.frame_eval_every,
+                heldout = self.evaluate(plot=_plots_at(self.frame_updates, c.schedule.frame_eval_every,
                                                        c.frame_steps))
                 if self.writes:
                     append_csv(self.out / "frame-metrics.csv", row, FRAME_METRIC_COLUMNS)

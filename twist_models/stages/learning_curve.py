@@ -57,7 +57,7 @@ def snapshots(run: str | os.PathLike[str]) -> dict[str, Path]:
                    if (m := SNAPSHOT.fullmatch(p.name)))
     if not found:
         raise CurveError(f"{str(run)!r} holds no agent snapshot (agent-<updates>.pt); set "
-                         "snapshot_every lower than the run's steps")
+                         "schedule.snapshot_every lower than the run's steps")
     return {f"u{updates}": path for updates, path in found}
 
 

@@ -104,11 +104,11 @@ STUDENT_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "twist-scratch": ("paper", {"copy_dynamics": False}),
     "twist-no-imagined": ("paper", {"imagined": False}),
     "twist-no-noise": ("paper", {"action_noise": 0.0}),
-    "twist-action": ("paper", {"action_weight": 10.0}),
+    "twist-action": ("paper", {"weights.action": 10.0}),
     "twist-dense": ("dense", {}),
     "twist-dense-no-stage": ("dense", {"frame_steps": 0}),
-    "twist-dense-no-state": ("dense", {"state_weight": 0.0}),
-    "twist-dense-no-frame-kl": ("dense", {"frame_post_weight": 0.0}),
+    "twist-dense-no-state": ("dense", {"weights.state": 0.0}),
+    "twist-dense-no-frame-kl": ("dense", {"weights.frame_post": 0.0}),
     "twist-dense-no-norm": ("dense", {"encoder_norm": "none"}),
     "twist-dense-zero-start": ("dense", {"window_start": "zero"}),
     "twist-dense-shared-draws": ("dense", {"shared_draws": True}),
@@ -287,7 +287,7 @@ class _Pipeline:
             d = self.distil_config
             baseline = BaselineConfig(kind=kind, model=self.config.preset, steps=d.steps,
                                       batch_size=d.batch_size, length=d.length, seed=self.seed,
-                                      holdout_every=d.holdout_every)
+                                      holdout_every=d.schedule.holdout_every)
             train_baseline(dataset, folder, baseline, resume=resume, device=self.device)
         return agent
 

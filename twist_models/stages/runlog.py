@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 
 from twist_data.errors import ConfigError, TwistError
 from twist_data.staging import require_writable
-from twist_models.config import from_json, removed_fields, to_json
+from twist_models.config import from_json, json_leaves, removed_fields, to_json, with_moved
 
 T = TypeVar("T")
 
@@ -100,21 +100,24 @@ def prepare_output(out: Path, error: type[TwistError]) -> None:
 def resume_conflicts(before: Mapping[str, Any], config: Any,
                      mutable: tuple[str, ...]) -> list[str]:
     """``name was X, now Y`` for every field of the config dataclass ``config`` outside
-    ``mutable`` that a resumed run would change, against ``before``, the run's stored config
-    (JSON). A field ``before`` lacks was added after that run began; every new field's default
-    keeps the behaviour of the versions before it, so the run is compared with that default. A
-    field since removed conflicts unless the run left it off
-    (:func:`~twist_models.config.removed_fields`)."""
-    now = to_json(config)
-    defaults = to_json(type(config)())
+    ``mutable`` (dotted names reach nested configs) that a resumed run would change, against
+    ``before``, the run's stored config (JSON). A field ``before`` lacks was added after that
+    run began; every new field's default keeps the behaviour of the versions before it, so the
+    run is compared with that default. A field since moved into a nested config is compared
+    where it is now, and one since removed conflicts unless the run left it off
+    (:func:`~twist_models.config.moved_fields`, :func:`~twist_models.config.removed_fields`)."""
+    kind = type(config)
+    was_removed = {name: before[name] for name, off in removed_fields(kind).items()
+                   if name in before and before[name] != off}
+    before = json_leaves(with_moved(kind, before))
+    defaults = json_leaves(to_json(kind()))
     conflicts = []
-    for name, value in now.items():
+    for name, value in json_leaves(to_json(config)).items():
         was = before.get(name, defaults.get(name))
         if name not in mutable and was != value:
             conflicts.append(f"{name} was {was!r}, now {value!r}")
-    for name, off in removed_fields(type(config)).items():
-        if name in before and before[name] != off:
-            conflicts.append(f"{name} was {before[name]!r} and has been removed")
+    conflicts += [f"{name} was {value!r} and has been removed"
+                  for name, value in was_removed.items()]
     return conflicts
 
 
