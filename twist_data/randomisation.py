@@ -118,25 +118,15 @@ _HELDOUT = DRConfig(background="heldout", resample="episode")
 #: Named DR configurations. ``train``/``heldout`` are the paper's DMC setting (background and
 #: colours; re-sampled every step for collection, once per episode on held-out backgrounds for
 #: evaluation); the ``-full`` variants add the manipulation factors (light, camera, friction,
-#: mass); ``train-contrast`` camouflages the body in half of the training views (not in the
-#: paper: the held-out scenes the read-out student loses are those where a lean changes the
-#: fewest pixel levels, research/log.md), ``train-wide-contrast`` the same on
-#: ``train-wide``'s bank; ``train-wide`` draws from 1,024 textures of five
-#: families instead of 128 of three (not in the paper: on cup-catch its read-out student
-#: scored 714.1 against 585.3 on held-out backgrounds and 351.2 against 135.0 on a
-#: photograph; on cartpole about the same as with ``train``, research/log.md);
-#: ``train-leaves`` adds dead leaves, a family with the statistics of photographs, for
-#: students that must read scenes in front of real photographs (one cartpole seed: 800.2
-#: against 752.5 in front of eight photographs, the same on held-out backgrounds);
-#: ``train-wide-full`` adds the ``-full`` factors to ``train-wide`` (a D re-rendered with it
-#: shows the student a moved camera and changed light; re-rendering keeps D's physics);
-#: ``heldout-camera``, ``heldout-light`` and ``heldout-physics`` add one ``-full`` factor
-#: each to ``heldout``, with every other draw the same as ``heldout``'s, so that a drop in
-#: return is that factor's alone;
-#: ``train-wide-episode`` is ``train-wide`` drawn once per episode and held, as every
-#: evaluation holds its scene, for windows whose recurrence sees what deployment shows (the
-#: paper randomises per step when collecting and does not say how the windows it distils
-#: from are rendered); ``none`` renders the nominal scene.
+#: mass). Not in the paper: ``train-wide`` draws from 1,024 textures of five families instead
+#: of 128 of three (it reads unseen background kinds better); ``train-leaves`` adds dead
+#: leaves, a family with the statistics of photographs; ``train-contrast`` and
+#: ``train-wide-contrast`` camouflage the body in half of the training views;
+#: ``train-wide-full`` adds the ``-full`` factors to ``train-wide`` (a re-render keeps D's
+#: physics); ``heldout-camera``, ``heldout-light`` and ``heldout-physics`` add one ``-full``
+#: factor each to ``heldout`` with every other draw the same, so that a drop in return is that
+#: factor's alone; ``train-wide-episode`` holds one scene per episode, as evaluation does;
+#: ``none`` renders the nominal scene. What each measured: docs/findings.md.
 DR_PRESETS: dict[str, DRConfig] = {
     "train": DRConfig(background="train", resample="step"),
     "train-wide": _WIDE,

@@ -45,7 +45,7 @@ def compile_mode(setting: str, device: torch.device) -> str | None:
     replaces) after ~3 minutes of compiling, and a collection learned 15% sooner; but its
     teacher, another draw of the random numbers, learned for longer before it stopped, so
     ``auto`` stays eager there, the arithmetic every measured teacher learned with
-    (``benchmarks/teacher_update_modes.py``; research/log.md)."""
+    (``benchmarks/teacher_update_modes.py``; docs/findings.md)."""
     if setting not in COMPILE_SETTINGS:
         raise ConfigError(f"unknown compile setting {setting!r}; valid: "
                           f"{', '.join(COMPILE_SETTINGS)}")

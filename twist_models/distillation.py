@@ -210,14 +210,14 @@ class DistilConfig:
     (``TaskSpec.mirror``): ``none``; ``average``, each image read as the mean of its own
     reading and its mirror image's, mirrored back (acting and windows; twice the CNN passes);
     ``augment``, that, and the first stage trains on each frame mirrored with probability 1/2,
-    its state mirrored with it (not in the paper; research/log.md); ``auto``:
+    its state mirrored with it (not in the paper; docs/findings.md); ``auto``:
     :data:`AUTO_MIRROR` where the task declares its mirror, ``none`` elsewhere."""
     readout_lean: float = 1.0
     """How much further from its centre (upright on cartpole) a read-out student hands each
     angle it reads to the teacher's filter than it reads it (``ReadOutConfig.lean``; 1: as
     read); any ``steps`` of Eq. 3/4 train through it. The ``readout`` recipe's 1.25 was
     chosen on held-out scenes of another evaluation seed than the reported one, among 1,
-    1.15, 1.25, 1.35 and 1.5 (not in the paper; research/log.md)."""
+    1.15, 1.25, 1.35 and 1.5 (not in the paper; docs/findings.md)."""
     readout_first_velocity: str = "zero"
     """Where a read-out student's velocities at a training window's first step come from, in
     mid-episode: ``read`` (the ``readout`` recipe's), the difference with the frame before
@@ -340,19 +340,14 @@ RECIPES: dict[str, dict[str, Any]] = {
                 "readout_mirror": "auto", "readout_lean": 1.25, "readout_first_velocity": "read",
                 "stage_optimiser": "reset"},
 }
-#: Updates of each recipe's single-frame stage at each size preset. One update of 64 frames
-#: costs ~1/20 of a ``quick`` update on windows (36 against ~1.5 per second on the 2-core CPU,
-#: bfloat16); the ``dense`` recipe's held-out per-frame agreement still improved at 3,000; the
-#: read-out student's held-out return still rose from 15,000 to 30,000 to 45,000 on every
-#: seed, and its training loss still falls (research/log.md, "Where the read-out student
-#: loses the pole"); 45,000 take ~22 minutes on one thread at ``quick`` size.
+#: Updates of each recipe's single-frame stage at each size preset: one update of 64 frames
+#: costs ~1/20 of a ``quick`` update on windows, and the read-out student's return still rose
+#: from 15,000 to 45,000 (docs/findings.md, "Do more first-stage updates help?").
 FRAME_STEPS = {"dense": {"paper": 20_000, "quick": 10_000, "tiny": 4},
                "readout": {"paper": 90_000, "quick": 45_000, "tiny": 4}}
 #: Updates on windows (Eq. 3/4 through the teacher's fixed filter) after the read-out stage:
-#: none by default. Measured on cartpole (docs/findings.md), 200 of them lowered the held-out
-#: posterior KL from 7.7 to 4.8 nats while the read-out's error grew and the return fell from
-#: 873.3 to 331.7: the paper's objective, through a filter that is already the teacher's,
-#: moves the read-out away from the state the actor needs. ``steps`` adds them.
+#: none by default, since they move the read-out away from the state the actor needs
+#: (docs/findings.md, "TWIST's objective, long"); ``steps`` adds them.
 READOUT_STEPS = {"paper": 0, "quick": 0, "tiny": 0}
 
 DISTIL_PRESETS: dict[str, DistilConfig] = {

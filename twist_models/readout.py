@@ -16,7 +16,7 @@ images. This module lets the student hand that filter a state instead of an imag
 
 Why: the measured alternative, velocities learned from two stacked frames, was no better than
 predicting their mean, and the filter balanced on nothing but the velocity
-(research/log.md, "A student that reads the state").
+(docs/findings.md, "A student that reads the state").
 """
 
 from __future__ import annotations
@@ -257,7 +257,7 @@ class StateReadOut(nn.Module):
         # angle: 654) far sooner than when too large (2x: 982). So the reading is handed on
         # `lean` times further from D's median angle: d + (lean - 1) sin d has slope `lean`
         # at d = 0, is monotone for lean < 2 and leaves a fallen pole (d = pi) where it is
-        # (research/log.md, "Does reading the lean larger hold the lost scenes?"). An
+        # (docs/findings.md, "Does reading the lean larger hold the lost scenes?"). An
         # angle the mirror turns over leans about 0, so a mirror-symmetric reading stays so.
         mirrored = bool(self.config.mirror) and self.config.mirror[s] < 0
         centre = self.mean.new_zeros(()) if mirrored else torch.atan2(self.mean[s], self.mean[c])

@@ -68,7 +68,7 @@ class Student(nn.Module):
         filter is handed before the velocities are derived."""
         # A background never seen biases one reading and its mirror image's differently: the
         # mean of both errs less (cartpole's held-out scenes: 0.50 -> 0.36 degrees of bias on
-        # the pole; research/log.md, "Does reading the mirror image too hold the lost
+        # the pole; docs/findings.md, "Does reading the mirror image too hold the lost
         # scenes?").
         mirrored = (self.encoder(image.flip(-2)) if self.readout.config.mirror else None)
         return self.readout.positions(self.encoder(image), mirrored)

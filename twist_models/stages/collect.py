@@ -117,7 +117,7 @@ class CollectConfig:
     evaluated teacher, which is then this one), as after ``learn_frames``: a teacher at the
     task's ceiling has little left to learn, and on the CPU each ``quick`` update costs
     ~0.25 s, 16 frames' worth. It also changes D, more of which the frozen teacher plays
-    (research/log.md measured a student of such a D). None: learning ends at
+    (docs/findings.md, "Can the teacher stop at an evaluation of 990?"). None: learning ends at
     ``learn_frames`` (or ``frames``) only."""
     freeze_best: bool = False
     """At ``learn_frames`` the teacher of the best evaluation so far (``best.pt``), not the
@@ -153,8 +153,8 @@ class CollectConfig:
     dr: str = TRAINING_DR
     """DR preset of the renders (``twist-data`` lists them). ``train-wide`` (five texture
     families) rather than the paper-like ``train`` (three): its students read backgrounds of
-    kinds they never saw better (research/log.md, "Does a wider bank close cup-catch's
-    gap?")."""
+    kinds they never saw better (docs/findings.md, "Does a wider bank of training textures
+    help?")."""
     backgrounds: str | None = None
     """Folder of background images/videos replacing the procedural bank; None: procedural."""
     action_repeat: int = DEFAULT_ACTION_REPEAT
@@ -321,35 +321,15 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # DreamerV2 DMC (configs.yaml `dmc`): prefill 5000 agent steps = 10K frames, pretrain
     # 100, train_every 5; 500K frames, eval every 10K frames.
     # Rendered anti-aliased (supersample 2), as dm_control's own 4x multisampled render is:
-    # without it cartpole's pole breaks into stray pixels at 64x64 (research/log.md,
-    # anti-aliased renders); the same holds for quick.
+    # without it cartpole's pole breaks into stray pixels at 64x64; the same holds for quick.
     "paper": CollectConfig(model="paper", frames=500_000, eval_every=10_000, eval_episodes=10,
                            snapshot_every=100_000, prefill_frames=10_000, supersample=2),
-    # CPU-sized teacher: the recipe that learned fastest on this 2-core machine
-    # (research/log.md, "Teacher learning"; each setting was measured there against
-    # DreamerV2's). Acting every 4 frames moves the state 2x more per model step and halves
-    # the per-frame cost; gamma 0.98 per agent step keeps DreamerV2's horizon in seconds;
-    # 2,000 world-model updates on 10K random frames come before behaviour learning; a 12x
-    # faster actor (1e-3) and a DreamerV3 critic (two-hot, normalised returns) fit the few
-    # thousand behaviour updates that the main job's budget allows; 15-step open-loop
-    # overshooting trains what imagination uses. Imagination runs in bfloat16 where the CPU
-    # computes it natively: its heads over 256 x 16 imagined states are most of an update's
-    # matrix products (1.13-1.30x per update on an AMD EPYC, 1.05x on an Intel Xeon:
-    # benchmarks/teacher_update_modes.py).
-    # The teacher learns for 100K frames (at 28K it had not learned to balance; at 60K
-    # three seeds' best teachers scored 826-978 held out, at 100K 982-995: research/log.md,
-    # "Does the teacher balance when it learns longer?"), then the
-    # best evaluated teacher acts frozen to 300K (~3 minutes): the student distilled from 300
-    # episodes tracks the teacher far better than from 28 (research/log.md, the student
-    # short of data). Evaluations of 10 episodes every 2K frames (state only, ~1 s each) give
-    # freeze_best twice the candidates of 3 episodes every 4K, each estimated more steadily.
-    # Learning stops at the first evaluation of 990 (`learn_until_return`), near the task's
-    # ceiling of 1000: on seed 0 at 70K frames, 1,875 updates (~8 minutes of this CPU) early,
-    # with the very teacher that learning to 100K freezes as its best. Paired over the same 30
-    # held-out scenes, its D's read-out students (three distillation seeds: 858.3) scored
-    # 16.9 +- 29.2 points above those of the D learned to 100K (two seeds: 848.6):
-    # research/log.md, "Does the teacher stop learning at an evaluation of 990 without harm
-    # to its student?". A teacher that never reaches 990 (seed 2) learns to 100K as before.
+    # CPU-sized teacher: the settings that learned fastest on a 2-core CPU, each one `--set`
+    # from DreamerV2's (action repeat 4, a warm-up of world-model updates, a faster actor, a
+    # two-hot critic, open-loop overshooting; bfloat16 imagination where native). It learns
+    # to 100K frames or its first evaluation of 990, then its best evaluated snapshot acts
+    # frozen to 300 episodes, since the student needs the final teacher's trajectories
+    # (docs/findings.md, "The teacher on states").
     "quick": CollectConfig(model="quick", frames=300_000, learn_frames=100_000, freeze_best=True,
                            learn_until_return=990.0,
                            supersample=2, eval_every=2_000, eval_episodes=10,

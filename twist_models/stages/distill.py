@@ -281,7 +281,7 @@ def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resum
     changed = (["the student's sizes differ"] if before is not None
                and (stored is None or not same_student(stored, student)) else [])
     # frame_steps may grow on resume: the first stage's loss still falls where a preset stops
-    # it, and continuing costs only the added updates (research/log.md).
+    # it, and continuing costs only the added updates (docs/findings.md).
     folder.open(config, resume, ("steps", "frame_steps", "compute.compile"),
                 "--steps and --set frame_steps, compute.compile",
                 also=changed)
@@ -639,7 +639,7 @@ class _Run:
     def _bundle(self, path: Path) -> Path:
         # Every snapshot is deployable too: the return need not rise with the updates (it fell
         # from 559 to 403 between 800 and 2,000 in one run while the latents kept improving;
-        # research/log.md, more updates), so the update count is worth choosing
+        # docs/findings.md, more updates), so the update count is worth choosing
         # by evaluating the snapshots on episodes other than the reported ones.
         if self.writes:
             info = {**self.data.spec.image_agent_info(), "dataset": str(self.dataset_path),
