@@ -238,6 +238,40 @@ def synth(
     out.print(f"wrote {episodes} episodes x {steps} steps x {views} views to {out_dir}")
 
 
+@app.command()
+def photos(
+    out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="Folder to create.")],
+) -> None:
+    """Write the photographs of everyday scenes that installed packages ship (matplotlib's;
+    more with scikit-image) as a folder for `twist-eval --backgrounds OUT`: real scenes a
+    student never saw, without a download."""
+    from twist_data.backgrounds import shipped_photographs, write_background_folder
+
+    images = shipped_photographs()
+    write_background_folder(out_dir, images)
+    out.print(f"wrote {len(images)} photographs to {out_dir}: {', '.join(images)}")
+    if len(images) == 1:
+        out.print("scikit-image is not installed: only matplotlib's photograph was written")
+
+
+@app.command()
+def textures(
+    out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="Folder to create.")],
+    bank: Annotated[str, typer.Option(help="Procedural bank whose families to draw: train, "
+                                           "wide, leaves or heldout.")] = "wide",
+    count: Annotated[int, typer.Option(help="Textures to write.")] = 1024,
+    size: Annotated[int, typer.Option(help="Texture side in pixels (256: the bank's for "
+                                           "64x64 renders supersampled 2x).")] = 256,
+    seed: Annotated[int, typer.Option(help="Seed (the procedural banks draw with 0).")] = 1,
+) -> None:
+    """Write a procedural bank's textures as a folder a user can edit by hand and render D
+    under (`twist-data render D D2 --backgrounds OUT`)."""
+    from twist_data.backgrounds import bank_textures, write_background_folder
+
+    write_background_folder(out_dir, bank_textures(bank, count, size, seed))
+    out.print(f"wrote {count} textures of the {bank} bank's families to {out_dir}")
+
+
 BackgroundsOption = Annotated[Path | None, typer.Option(
     "--backgrounds", help="Folder of images/videos to use as backgrounds instead of the "
                           "procedural bank.")]

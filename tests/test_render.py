@@ -12,8 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.conftest import run_command
 from twist_data.backgrounds import (
     FAMILIES,
+    background_files,
     blobs,
     clouds,
     directory_bank,
@@ -635,3 +637,35 @@ def test_record_cli_writes_a_verifiable_deterministic_dataset(tmp_path: Path, gl
         np.testing.assert_array_equal(a.column(key), b.column(key))
     np.testing.assert_array_equal(a.episode(1).image, b.episode(1).image)
     assert a.episodes()["env_step"].tolist() == [0, 8]  # 4 agent steps x action repeat 2
+
+
+def test_a_texture_folder_holds_the_banks_families_in_turn_and_loads_as_backgrounds(
+        tmp_path: Path) -> None:
+    out = tmp_path / "bank"
+    assert run_command("data", "textures", str(out), "--count", "7", "--size", "32",
+                       "--bank", "wide").returncode == 0
+    families = list(FAMILIES["wide"].items())
+    files = background_files(out)
+    assert [p.name for p in files] == [f"{i:05d}-{families[i % 5][0]}.png" for i in range(7)]
+    for i, path in enumerate(files):  # each the family's own draw with the folder's seed
+        expected = families[i % 5][1](np.random.default_rng([1, i]), 32)
+        np.testing.assert_array_equal(cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB),
+                                      expected)
+    assert len(directory_bank(out, 32).textures) == 7
+    before = sorted(p.name for p in out.iterdir())
+    refused = run_command("data", "textures", str(out), "--count", "2")
+    assert refused.returncode != 0 and "already exists" in refused.stderr
+    assert sorted(p.name for p in out.iterdir()) == before
+    refused = run_command("data", "textures", str(tmp_path / "other"), "--bank", "nope")
+    assert refused.returncode != 0 and "unknown texture bank 'nope'" in refused.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bank"]  # nothing half-written
+
+
+def test_a_photo_folder_holds_matplotlibs_photograph_as_it_ships(tmp_path: Path) -> None:
+    import matplotlib.cbook
+    assert run_command("data", "photos", str(tmp_path / "photos")).returncode == 0
+    shipped = cv2.imread(str(matplotlib.cbook.get_sample_data("grace_hopper.jpg",
+                                                              asfileobj=False)))
+    written = cv2.imread(str(tmp_path / "photos" / "grace_hopper.png"))
+    np.testing.assert_array_equal(written, shipped)  # PNG keeps the decoded pixels exactly
+    assert background_files(tmp_path / "photos")

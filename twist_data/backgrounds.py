@@ -16,7 +16,8 @@ from __future__ import annotations
 import functools
 import hashlib
 import logging
-from collections.abc import Callable
+import shutil
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -342,3 +343,68 @@ def _video_frames(path: Path, limit: int) -> list[tuple[int, np.ndarray]]:
         return []
     keep = np.unique(np.linspace(0, len(frames) - 1, min(limit, len(frames))).round().astype(int))
     return [frames[i] for i in keep]
+
+
+# -- background folders a user can hand to --backgrounds ------------------------------------------
+#: scikit-image's bundled photographs of everyday scenes (files in its wheel's ``data``
+#: folder, read directly: its loader functions may try to fetch what a wheel lacks).
+SKIMAGE_PHOTOS = ("astronaut.png", "chelsea.png", "coffee.png", "motorcycle_left.png",
+                  "rocket.jpg", "camera.png", "hubble_deep_field.jpg")
+
+
+def shipped_photographs() -> dict[str, np.ndarray]:
+    """Name -> RGB uint8 image of every photograph of everyday scenes the installed packages
+    ship (matplotlib's ``grace_hopper.jpg``; with scikit-image, :data:`SKIMAGE_PHOTOS`), so
+    that an evaluation in front of photographs needs no download. None may be trained on:
+    they stand for the real scenes a student never saw."""
+    import importlib.util
+
+    import matplotlib.cbook
+
+    files = [Path(matplotlib.cbook.get_sample_data("grace_hopper.jpg", asfileobj=False))]
+    spec = importlib.util.find_spec("skimage")
+    if spec is not None and spec.origin is not None:
+        folder = Path(spec.origin).parent / "data"
+        files += [folder / name for name in SKIMAGE_PHOTOS if (folder / name).is_file()]
+    # IMREAD_COLOR gives three channels for grey and RGBA files alike.
+    return {path.stem: cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+            for path in files}
+
+
+def bank_textures(bank: str, count: int, size: int, seed: int = 1) -> dict[str, np.ndarray]:
+    """``count`` textures of ``size`` pixels from the families of procedural bank ``bank``
+    (:data:`FAMILIES`), in turn, named ``<index>-<family>``: a bank a user can edit by hand and
+    render D under (``twist-data render D D2 --backgrounds DIR``). ``seed`` 1, not the
+    procedural banks' 0, so that the folder holds textures D never showed."""
+    if bank not in FAMILIES:
+        raise BackgroundError(f"unknown texture bank {bank!r}; valid banks are: "
+                              f"{', '.join(FAMILIES)}")
+    if count < 1 or size < 8:
+        raise BackgroundError(f"a texture folder needs count >= 1 and size >= 8, got count "
+                              f"{count} and size {size}")
+    families = list(FAMILIES[bank].items())
+    return {f"{i:05d}-{families[i % len(families)][0]}":
+            families[i % len(families)][1](np.random.default_rng([seed, i]), size)
+            for i in range(count)}
+
+
+def write_background_folder(out: str | Path, images: Mapping[str, np.ndarray]) -> list[Path]:
+    """Write RGB uint8 ``images`` as ``<name>.png`` into the new folder ``out``, whole or not
+    at all: an existing ``out`` is refused naming it, and the files are written into a
+    temporary sibling renamed at the end."""
+    out = Path(out)
+    if out.exists():
+        raise BackgroundError(f"{str(out)!r} already exists; a background folder is written "
+                              f"into a new folder")
+    partial = out.with_name(f".{out.name}.partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    try:
+        for name, image in images.items():
+            if not cv2.imwrite(str(partial / f"{name}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+                raise BackgroundError(f"could not write {name}.png into {str(out)!r}")
+        partial.rename(out)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    return sorted(out.iterdir())
