@@ -23,7 +23,6 @@ import time
 
 import torch
 
-from twist_data.tasks import TaskEnv
 from twist_models.agent import Agent
 from twist_models.config import AgentConfig, student_preset, teacher_preset
 from twist_models.stages.evaluation import (
@@ -34,6 +33,7 @@ from twist_models.stages.evaluation import (
     evaluation_envs,
 )
 from twist_models.teacher import Teacher
+from twist_sim.tasks import TaskEnv
 
 TASK = "cartpole-balance"
 

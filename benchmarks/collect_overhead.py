@@ -30,16 +30,16 @@ from pathlib import Path
 
 import numpy as np
 
-from twist_data.randomisation import dr_preset
-from twist_data.render import DRRenderer
-from twist_data.render_process import RenderProcess
-from twist_data.rollout import random_policy, record_episode, simulated_spec
-from twist_data.tasks import TaskEnv
 from twist_data.writer import ShardWriter
 from twist_models.networks import single_threaded
 from twist_models.policies import teacher_policy
 from twist_models.stages.collect import collect_preset
 from twist_models.teacher import Teacher
+from twist_sim.randomisation import dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.render_process import RenderProcess
+from twist_sim.rollout import random_policy, record_episode, simulated_spec
+from twist_sim.tasks import TaskEnv
 
 TARGET = 250.0
 

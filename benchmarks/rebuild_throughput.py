@@ -26,7 +26,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from twist_data.reader import open_dataset
-from twist_data.rerender import reproduce_dataset
+from twist_sim.rerender import reproduce_dataset
 
 TARGET = 1.6
 

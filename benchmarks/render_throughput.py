@@ -27,9 +27,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np
 
-from twist_data.randomisation import dr_preset
-from twist_data.render import DRRenderer
-from twist_data.tasks import TASKS, TaskEnv
+from twist_sim.randomisation import dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.tasks import TASKS, TaskEnv
 
 TARGET = 300.0
 K, SIZE = 2, 64

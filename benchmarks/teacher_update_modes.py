@@ -50,10 +50,10 @@ from collections.abc import Callable
 
 import torch
 
-from twist_data.tasks import TaskEnv
 from twist_models.rssm import State
 from twist_models.stages.collect import COLLECT_PRESETS, collect_preset
 from twist_models.teacher import Teacher
+from twist_sim.tasks import TaskEnv
 
 VARIANTS = ("eager", "bf16", "compiled", "compiled_bf16", "compiled_steps_bf16",
             "bf16_world_model", "pieces", "pieces_bf16")

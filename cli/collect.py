@@ -10,8 +10,6 @@ import typer
 
 from twist_cli.common import new_app, parse_settings, print_json, progress_bar, run_app
 from twist_data.errors import ConfigError
-from twist_data.randomisation import TRAINING_DR
-from twist_data.tasks import DEFAULT_TASK
 from twist_models.device import resolve_device
 from twist_models.stages.collect import (
     COLLECT_PRESETS,
@@ -23,6 +21,8 @@ from twist_models.stages.collect import (
 )
 from twist_models.stages.collect import Progress as CollectProgress
 from twist_models.stages.runlog import recorded_config
+from twist_sim.randomisation import TRAINING_DR
+from twist_sim.tasks import DEFAULT_TASK
 
 app = new_app()
 

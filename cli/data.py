@@ -16,12 +16,12 @@ from rich.table import Table
 from twist_cli.common import err, new_app, out, parse_list, run_app
 from twist_data.errors import ConfigError, TwistError
 from twist_data.export import export_hdf5, export_video
-from twist_data.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 from twist_data.reader import open_dataset
 from twist_data.staging import human_bytes, require_new_file
 from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import quick_problems, verify_dataset
+from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 
 app = new_app(help="Inspect, verify, export, re-render and synthesise TWIST matching datasets.",
               no_args_is_help=True)
@@ -113,7 +113,7 @@ def verify(
     with progress_bar("verifying") as update:
         report = verify_dataset(dataset, on_progress=update)
     if rerender > 0 and report.ok:
-        from twist_data.rerender import check_reproduction
+        from twist_sim.rerender import check_reproduction
 
         with progress_bar("re-rendering"):
             report.problems.extend(check_reproduction(open_dataset(dataset), rerender))
@@ -245,7 +245,7 @@ def photos(
     """Write the photographs of everyday scenes that installed packages ship (matplotlib's;
     more with scikit-image) as a folder for `twist-eval --backgrounds OUT`: real scenes a
     student never saw, without a download."""
-    from twist_data.backgrounds import shipped_photographs, write_background_folder
+    from twist_sim.backgrounds import shipped_photographs, write_background_folder
 
     images = shipped_photographs()
     write_background_folder(out_dir, images)
@@ -266,7 +266,7 @@ def textures(
 ) -> None:
     """Write a procedural bank's textures as a folder a user can edit by hand and render D
     under (`twist-data render D D2 --backgrounds OUT`)."""
-    from twist_data.backgrounds import bank_textures, write_background_folder
+    from twist_sim.backgrounds import bank_textures, write_background_folder
 
     write_background_folder(out_dir, bank_textures(bank, count, size, seed))
     out.print(f"wrote {count} textures of the {bank} bank's families to {out_dir}")
@@ -280,7 +280,7 @@ BackgroundsOption = Annotated[Path | None, typer.Option(
 @app.command()
 def tasks() -> None:
     """The simulated tasks with their state, action and physics dimensions."""
-    from twist_data.tasks import TASKS, TaskEnv
+    from twist_sim.tasks import TASKS, TaskEnv
 
     table = Table(title="twist tasks (action repeat 2)")
     for column in ("task", "dm_control", "state", "action", "physics", "state layout"):
@@ -324,7 +324,7 @@ def render(
 ) -> None:
     """Re-render a simulated dataset's stored physics states under a new DR config into OUT,
     or with --reproduce rebuild its own images exactly."""
-    from twist_data.rerender import reproduce_dataset, rerender_dataset
+    from twist_sim.rerender import reproduce_dataset, rerender_dataset
 
     chosen = None if episodes is None else parse_list(episodes, int, "--episodes")
     if reproduce:
@@ -392,7 +392,7 @@ def record(
     seed: Annotated[int, typer.Option(help="Seed of everything.")] = 0,
 ) -> None:
     """Record random-policy episodes of a task with K randomised views (prefill, demos)."""
-    from twist_data.rollout import record_dataset
+    from twist_sim.rollout import record_dataset
 
     config = dr_preset(dr, backgrounds)
     with progress_bar("recording") as update:
@@ -411,7 +411,7 @@ def contact_sheet_cmd(
     backgrounds: BackgroundsOption = None,
 ) -> None:
     """PNG of one state: a row of train-distribution views, a row of held-out views."""
-    from twist_data.sheets import contact_sheet, default_rows, write_contact_sheet
+    from twist_sim.sheets import contact_sheet, default_rows, write_contact_sheet
 
     rows = default_rows()
     if backgrounds is not None:

@@ -48,8 +48,8 @@ def collected_tiny(tmp_path_factory: pytest.TempPathFactory, gl: None) -> Path:
 def gl() -> None:
     """Skip rendering tests, with the reason, only if no OpenGL context can be made at all."""
     from twist_data.errors import RenderUnavailableError
-    from twist_data.randomisation import dr_preset
-    from twist_data.render import DRRenderer
+    from twist_sim.randomisation import dr_preset
+    from twist_sim.render import DRRenderer
 
     try:
         DRRenderer("cartpole-balance", dr_preset("none"), 8, 1).close()

@@ -24,7 +24,6 @@ from twist_data.errors import ConfigError, UnknownTaskError
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.schema import ATTRS_KEY
 from twist_data.seeding import derived_seed
-from twist_data.tasks import Dynamics, TaskEnv
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
 from twist_models.checkpoint import read_checkpoint
@@ -41,6 +40,7 @@ from twist_models.stages.collect import (
 from twist_models.stages.evaluation import load_agent
 from twist_models.stages.runlog import recorded_config
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, find_teacher, load_teacher
+from twist_sim.tasks import Dynamics, TaskEnv
 
 pytestmark = pytest.mark.usefixtures("gl")
 COLLECT = [sys.executable, "-m", "twist_cli.collect"]
@@ -298,9 +298,9 @@ def test_a_finished_run_extends_d_with_its_frozen_teacher(tmp_path: Path) -> Non
 
 
 def test_supersampled_collection_records_it_and_its_frames_reproduce(tmp_path: Path) -> None:
-    from twist_data.randomisation import VIEW_PARAMS, DRConfig
-    from twist_data.render import DRRenderer
-    from twist_data.rerender import check_reproduction, render_blocks, reproduce_frames
+    from twist_sim.randomisation import VIEW_PARAMS, DRConfig
+    from twist_sim.render import DRRenderer
+    from twist_sim.rerender import check_reproduction, render_blocks, reproduce_frames
 
     collect(tmp_path, collect_preset("tiny", frames=100, supersample=2))  # the prefill episode
     dataset = open_dataset(tmp_path)

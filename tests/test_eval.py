@@ -17,7 +17,6 @@ import torch
 
 from tests.conftest import run_command
 from twist_data.errors import ConfigError
-from twist_data.tasks import TaskEnv
 from twist_models.agent import Agent
 from twist_models.config import AgentConfig, student_preset, teacher_preset
 from twist_models.stages.evaluation import (
@@ -33,6 +32,7 @@ from twist_models.stages.evaluation import (
 )
 from twist_models.statistics import format_paired, iqm, paired_difference, stratified_bootstrap
 from twist_models.teacher import Teacher, save_teacher
+from twist_sim.tasks import TaskEnv
 
 
 def test_iqm_of_known_arrays() -> None:
@@ -124,7 +124,7 @@ def test_scripted_agent_scores_what_the_environment_pays(gl) -> None:
 
 
 def test_heldout_randomisation_is_drawn_once_per_episode(gl, monkeypatch) -> None:
-    from twist_data.render import DRRenderer
+    from twist_sim.render import DRRenderer
 
     seen: list[dict[str, np.ndarray]] = []
     original = DRRenderer.render_states  # what every render goes through
@@ -313,7 +313,7 @@ def test_reference_agents_score_what_their_actions_earn(gl, agents, tmp_path) ->
 
 def test_image_agents_see_the_world_rendered_as_their_data_was(gl, agents, tmp_path,
                                                                monkeypatch) -> None:
-    from twist_data.render import DRRenderer
+    from twist_sim.render import DRRenderer
 
     made: list[int] = []
     original = DRRenderer.__init__
@@ -544,8 +544,8 @@ def test_environments_made_once_serve_every_seed(gl, agents) -> None:
 
 def test_environment_workers_report_a_bad_background_folder_as_ours(tmp_path) -> None:
     from twist_data.errors import BackgroundError
-    from twist_data.randomisation import DRConfig
-    from twist_data.vector_env import EnvWorkers
+    from twist_sim.randomisation import DRConfig
+    from twist_sim.vector_env import EnvWorkers
 
     dr = DRConfig(background="directory", background_dir=str(tmp_path / "missing"))
     with pytest.raises(BackgroundError):

@@ -13,15 +13,15 @@ gymnasium = pytest.importorskip("gymnasium")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 from twist_data.errors import ConfigError, TwistError  # noqa: E402
-from twist_data.gym_env import TwistEnv, environment_id  # noqa: E402
-from twist_data.randomisation import DR_PRESETS  # noqa: E402
-from twist_data.tasks import TASKS  # noqa: E402
 from twist_models.stages.evaluation import (  # noqa: E402
     EvalConfig,
     PolicyAgent,
     evaluate,
     run_evaluation,
 )
+from twist_sim.gym_env import TwistEnv, environment_id  # noqa: E402
+from twist_sim.randomisation import DR_PRESETS  # noqa: E402
+from twist_sim.tasks import TASKS  # noqa: E402
 
 STEPS = 12
 
@@ -136,7 +136,7 @@ def test_a_script_that_never_closes_its_environment_exits_silently(gl) -> None:
     import subprocess
     import sys
 
-    script = ("import gymnasium, twist_data.gym_env\n"
+    script = ("import gymnasium, twist_sim.gym_env\n"
               "env = gymnasium.make('twist/cartpole-balance-heldout-v0')\n"
               "env.reset(seed=0)\nenv.step(env.action_space.sample())\nprint('stepped')\n")
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,

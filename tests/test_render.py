@@ -13,7 +13,12 @@ import numpy as np
 import pytest
 
 from tests.conftest import run_command
-from twist_data.backgrounds import (
+from twist_data.errors import BackgroundError, CheckpointError, ConfigError, PhysicsStateError
+from twist_data.reader import open_dataset
+from twist_data.verify import verify_dataset
+from twist_data.writer import ShardWriter
+from twist_models.teacher import find_teacher
+from twist_sim.backgrounds import (
     FAMILIES,
     background_files,
     blobs,
@@ -22,17 +27,12 @@ from twist_data.backgrounds import (
     leaves,
     procedural_bank,
 )
-from twist_data.errors import BackgroundError, CheckpointError, ConfigError, PhysicsStateError
-from twist_data.randomisation import DR_PRESETS, DRConfig, DRSampler, dr_preset
-from twist_data.reader import open_dataset
-from twist_data.render import DRRenderer
-from twist_data.render_process import RenderProcess, RenderProcessError
-from twist_data.rerender import check_reproduction, render_blocks, rerender_dataset
-from twist_data.rollout import random_policy, record_episode, simulated_spec
-from twist_data.tasks import TaskEnv
-from twist_data.verify import verify_dataset
-from twist_data.writer import ShardWriter
-from twist_models.teacher import find_teacher
+from twist_sim.randomisation import DR_PRESETS, DRConfig, DRSampler, dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.render_process import RenderProcess, RenderProcessError
+from twist_sim.rerender import check_reproduction, render_blocks, rerender_dataset
+from twist_sim.rollout import random_policy, record_episode, simulated_spec
+from twist_sim.tasks import TaskEnv
 
 
 @pytest.fixture

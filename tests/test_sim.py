@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from twist_data.errors import ConfigError, PhysicsStateError, UnknownTaskError
-from twist_data.tasks import TASKS, Dynamics, TaskEnv, task_spec
+from twist_sim.tasks import TASKS, Dynamics, TaskEnv, task_spec
 
 # Observation sizes of the DMC tasks as DreamerV2/DrQ report them for state-based agents.
 KNOWN_STATE_DIMS = {"cup-catch": 8, "cartpole-balance": 5, "cheetah-run": 17, "hopper-stand": 15,
@@ -144,9 +144,9 @@ def test_a_tasks_mirror_signs_are_those_of_the_reflected_world(task: str) -> Non
     """TaskSpec.mirror must be the state of the reflected physics, and camera 0 must show the
     reflected world as the mirror image of the original (the bodies; the sky's noise and the
     lights' shading are not symmetric)."""
-    from twist_data.randomisation import dr_preset
-    from twist_data.render import DRRenderer
-    from twist_data.tasks import state_mirror
+    from twist_sim.randomisation import dr_preset
+    from twist_sim.render import DRRenderer
+    from twist_sim.tasks import state_mirror
 
     pose, joints = REFLECTED[task]
     env = TaskEnv(task, seed=3)

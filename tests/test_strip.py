@@ -11,17 +11,17 @@ import numpy as np
 import pytest
 
 from twist_data.errors import ConfigError, ImagesStrippedError, NotADatasetError
-from twist_data.randomisation import dr_preset
 from twist_data.reader import open_dataset
-from twist_data.render import DRRenderer
-from twist_data.rerender import check_reproduction, reproduce_dataset
-from twist_data.rollout import random_policy, record_episode, simulated_spec
 from twist_data.sampler import SamplerConfig, WindowSampler
 from twist_data.schema import image_digest, step_arrays
 from twist_data.strip import strip_dataset
-from twist_data.tasks import TaskEnv
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
+from twist_sim.randomisation import dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.rerender import check_reproduction, reproduce_dataset
+from twist_sim.rollout import random_policy, record_episode, simulated_spec
+from twist_sim.tasks import TaskEnv
 
 
 def tree(path: Path) -> dict[str, int]:

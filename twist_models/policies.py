@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from twist_data.render import DRRenderer
-from twist_data.rollout import Policy
-from twist_data.tasks import Step
 from twist_models.agent import Agent, AgentState
 from twist_models.teacher import Teacher
+from twist_sim.render import DRRenderer
+from twist_sim.rollout import Policy
+from twist_sim.tasks import Step
 
 
 class Pushes:

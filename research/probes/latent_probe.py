@@ -34,12 +34,12 @@ import json
 import numpy as np
 import torch
 
-from twist_data.randomisation import dr_preset
-from twist_data.render import DRRenderer
-from twist_data.tasks import TaskEnv
 from twist_models.agent import Agent, AgentState
 from twist_models.rssm import POSTERIOR_READS, State
 from twist_models.teacher import Teacher, load_teacher
+from twist_sim.randomisation import dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.tasks import TaskEnv
 
 
 def correlation(a: list[float], b: list[float]) -> float:

@@ -38,8 +38,8 @@ import json
 
 import numpy as np
 
-from twist_data.tasks import Step
 from twist_models.stages.evaluation import EvalConfig, StateAgent, evaluate, load_agent
+from twist_sim.tasks import Step
 
 
 class NoisyStateAgent:

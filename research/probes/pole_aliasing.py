@@ -20,9 +20,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import cv2
 import numpy as np
 
-from twist_data.randomisation import dr_preset
-from twist_data.render import DRRenderer
-from twist_data.tasks import TaskEnv
+from twist_sim.randomisation import dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.tasks import TaskEnv
 
 ANGLES = (0.0, 0.03, 0.06, 0.1)
 CART, HINGE = 1, 2  # cartpole's physics vector: time, qpos (cart slider, pole hinge), qvel

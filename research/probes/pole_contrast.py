@@ -25,10 +25,10 @@ import math
 
 import numpy as np
 
-from twist_data.randomisation import COLOUR_GROUPS, dr_preset
-from twist_data.render import DRRenderer
 from twist_data.seeding import evaluation_episode_seed
-from twist_data.tasks import TaskEnv
+from twist_sim.randomisation import COLOUR_GROUPS, dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.tasks import TaskEnv
 
 #: Where cartpole's physics vector holds the cart's position and the pole's hinge angle
 #: (time, then qpos; 0 rad is upright).

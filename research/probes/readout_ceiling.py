@@ -33,10 +33,10 @@ import numpy as np
 import torch
 
 from twist_data.reader import open_dataset
-from twist_data.tasks import Step
 from twist_models.agent import Agent
 from twist_models.readout import StateReadOut
 from twist_models.stages.evaluation import EvalConfig, StateAgent, evaluate, load_agent
+from twist_sim.tasks import Step
 
 
 class DerivedVelocityAgent:

@@ -39,14 +39,14 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from twist_data.randomisation import dr_preset
 from twist_data.reader import MatchingDataset, open_dataset
-from twist_data.render import DRRenderer
 from twist_data.seeding import evaluation_episode_seed
-from twist_data.tasks import TaskEnv, state_mirror
 from twist_models.agent import Agent
 from twist_models.networks import ImageEncoder
 from twist_models.readout import StateReadOut, typical
+from twist_sim.randomisation import dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.tasks import TaskEnv, state_mirror
 
 #: Where cartpole's physics vector holds the cart's position and the pole's hinge angle.
 CART_X, HINGE = 1, 2

@@ -39,13 +39,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from twist_data.randomisation import dr_preset
 from twist_data.reader import open_dataset
-from twist_data.render import DRRenderer
-from twist_data.rerender import render_blocks
 from twist_data.sampler import heldout_episodes
 from twist_data.seeding import derived_seed, evaluation_episode_seed
 from twist_models.agent import Agent
+from twist_sim.randomisation import dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.rerender import render_blocks
 
 #: Cartpole's state layout: cart x, cos θ, sin θ, then the velocities.
 X, COS, SIN = 0, 1, 2

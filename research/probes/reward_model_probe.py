@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from twist_data.tasks import TaskEnv
 from twist_models.config import teacher_preset
 from twist_models.teacher import Teacher
+from twist_sim.tasks import TaskEnv
 
 PROBE_STEPS = (10, 40, 80, 150)
 ACTIONS = (-1.0, 0.0, 1.0)

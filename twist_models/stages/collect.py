@@ -46,14 +46,9 @@ import numpy as np
 import torch
 
 from twist_data.errors import ConfigError, TwistError
-from twist_data.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 from twist_data.reader import ShardReader, open_dataset
-from twist_data.render import DRRenderer, FrameRenderer
-from twist_data.render_process import RenderProcess
-from twist_data.rollout import Policy, random_policy, record_episode, simulated_spec
 from twist_data.sampler import SamplerConfig, WindowSampler
 from twist_data.seeding import derived_seed
-from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Dynamics, TaskEnv, task_spec
 from twist_data.writer import ShardWriter, shard_path
 from twist_models.agent import Agent
 from twist_models.config import (
@@ -74,6 +69,11 @@ from twist_models.networks import single_threaded
 from twist_models.policies import Pushes, student_policy, teacher_policy
 from twist_models.stages.runlog import Board, RunFolder, append_csv, check_output
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teacher, save_teacher
+from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
+from twist_sim.render import DRRenderer, FrameRenderer
+from twist_sim.render_process import RenderProcess
+from twist_sim.rollout import Policy, random_policy, record_episode, simulated_spec
+from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Dynamics, TaskEnv, task_spec
 
 log = logging.getLogger(__name__)
 

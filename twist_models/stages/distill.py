@@ -47,7 +47,6 @@ from twist_data.sampler import (
 )
 from twist_data.seeding import derived_seed
 from twist_data.staging import removed_on_failure, require_memory
-from twist_data.tasks import state_mirror
 from twist_models.agent import Agent
 from twist_models.checkpoint import (
     move_optimiser_state,
@@ -101,6 +100,7 @@ from twist_models.student import (
     freeze_dynamics,
 )
 from twist_models.teacher import Teacher, find_teacher, load_teacher
+from twist_sim.tasks import state_mirror
 
 log = logging.getLogger(__name__)
 

@@ -29,14 +29,10 @@ import numpy as np
 import pandas as pd
 import torch
 
-from twist_data.backgrounds import background_files
 from twist_data.errors import BackgroundError, ConfigError, TwistError
 from twist_data.export import episode_strip, write_video
-from twist_data.randomisation import DR_PRESETS, DRConfig, dr_preset
 from twist_data.seeding import evaluation_episode_seed
 from twist_data.staging import require_writable
-from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Step, TaskEnv, task_spec
-from twist_data.vector_env import EnvWorkers, LocalEnvs
 from twist_models.agent import Agent, AgentState
 from twist_models.checkpoint import read_checkpoint
 from twist_models.config import require_positive, to_json
@@ -47,6 +43,10 @@ from twist_models.rssm import require_posterior_read
 from twist_models.stages.runlog import append_csv, refuse_resume, resume_conflicts
 from twist_models.statistics import PairedDifference, paired_difference, stratified_bootstrap
 from twist_models.teacher import Teacher, teacher_from_checkpoint
+from twist_sim.backgrounds import background_files
+from twist_sim.randomisation import DR_PRESETS, DRConfig, dr_preset
+from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Step, TaskEnv, task_spec
+from twist_sim.vector_env import EnvWorkers, LocalEnvs
 
 
 class EvalError(TwistError):
@@ -238,7 +238,7 @@ class ScriptedAgent:
 
 class PolicyAgent:
     """Any policy of the observations the Gymnasium environments give
-    (:mod:`twist_data.gym_env`): ``policy({"image": uint8 [H, W, 3], "state": [S]})`` -> action
+    (:mod:`twist_sim.gym_env`): ``policy({"image": uint8 [H, W, 3], "state": [S]})`` -> action
     [A], with only the keys of ``observe``; its ``reset()`` is called at each episode's start
     when it has one. So a policy written against ``gymnasium.make("twist/...")`` is scored by
     :func:`run_evaluation` on the same scenes and seeds as the toolkit's agents."""
@@ -438,7 +438,7 @@ def evaluate(agent: EvalAgent, config: EvalConfig, seed: int = 0,
     ~1e-9 over a few steps; over 250 some episodes part). ``batch=1`` is the reference.
 
     ``workers`` > 1 simulates and renders a batch's environments in that many worker
-    processes (:class:`~twist_data.vector_env.EnvWorkers`), with the same episodes as in
+    processes (:class:`~twist_sim.vector_env.EnvWorkers`), with the same episodes as in
     this process. ``envs``: environments from :func:`evaluation_envs` made for the same
     agent, config, ``batch`` and ``workers``, to use (and leave open) instead of making them."""
     check_compatible(agent, config)

@@ -2,7 +2,7 @@
 much of its return an agent keeps when the camera moves, the light changes or the physics
 differ (``twist-eval --dr heldout,heldout-camera,...``).
 
-Every preset draws an episode's scene from the same stream (:class:`~twist_data.randomisation.
+Every preset draws an episode's scene from the same stream (:class:`~twist_sim.randomisation.
 DRSampler` draws every parameter whatever its range), so episode ``e`` of seed ``s`` has the
 same start, backgrounds and colours under each preset, and differs only in the preset's own
 factor. Each agent's return under a preset is therefore paired, episode by episode, with its

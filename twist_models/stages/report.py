@@ -33,10 +33,7 @@ import numpy as np
 import pandas as pd
 
 from twist_data.errors import ConfigError, TwistError
-from twist_data.randomisation import DR_PRESETS, dr_preset
-from twist_data.rerender import rerender_dataset
 from twist_data.staging import require_writable
-from twist_data.tasks import task_spec
 from twist_models.config import require_positive
 from twist_models.curves import figure
 from twist_models.device import resolve_device
@@ -64,6 +61,9 @@ from twist_models.statistics import (
     stratified_bootstrap,
 )
 from twist_models.teacher import FINAL_TEACHER
+from twist_sim.randomisation import DR_PRESETS, dr_preset
+from twist_sim.rerender import rerender_dataset
+from twist_sim.tasks import task_spec
 
 log = logging.getLogger(__name__)
 

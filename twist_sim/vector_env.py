@@ -8,13 +8,13 @@ for all of them in one call: on a many-core GPU host, where the policy call is c
 simulation is what is left.
 
 Both classes answer the same two calls, :meth:`reset` and :meth:`step`, with each slot's
-:class:`~twist_data.tasks.Step` and its one rendered view (None when not rendering). A slot is
+:class:`~twist_sim.tasks.Step` and its one rendered view (None when not rendering). A slot is
 one environment, its DR sampler (seeded per episode by ``begin_episode``) and, in a worker,
 a renderer shared with the worker's other slots; the same episode seeds and actions give the
 same steps and pixels in either class (tested), so :class:`LocalEnvs` is the reference.
 
-Workers are started as ``python -m twist_data.vector_env`` over a socket pair, as the
-collector's render process is (:mod:`twist_data.render_process` says why not
+Workers are started as ``python -m twist_sim.vector_env`` over a socket pair, as the
+collector's render process is (:mod:`twist_sim.render_process` says why not
 ``multiprocessing``), and exit when their socket closes.
 """
 
@@ -32,8 +32,8 @@ import numpy as np
 
 from twist_data import errors
 from twist_data.errors import ConfigError, TwistError
-from twist_data.randomisation import DRConfig
-from twist_data.tasks import Step, TaskEnv
+from twist_sim.randomisation import DRConfig
+from twist_sim.tasks import Step, TaskEnv
 
 #: (step, its view [H, W, 3] uint8 or None) of one slot.
 Observed = tuple[Step, "np.ndarray | None"]
@@ -56,7 +56,7 @@ class LocalEnvs:
                  supersample: int = 1, action_repeat: int = 2, seed: int = 0,
                  max_steps: int | None = None, render: bool = True,
                  places: Sequence[int] | None = None) -> None:
-        from twist_data.render import DRRenderer
+        from twist_sim.render import DRRenderer
 
         self.places = list(range(slots)) if places is None else [int(p) for p in places]
         if len(self.places) != slots:
@@ -149,7 +149,7 @@ class EnvWorkers:
         for worker in range(self.workers):
             ours, theirs = socket.socketpair()
             self._processes.append(subprocess.Popen(
-                [sys.executable, "-m", "twist_data.vector_env", str(theirs.fileno())],
+                [sys.executable, "-m", "twist_sim.vector_env", str(theirs.fileno())],
                 pass_fds=[theirs.fileno()]))
             theirs.close()
             self._conns.append(Connection(ours.detach()))

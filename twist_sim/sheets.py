@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 
 from twist_data.errors import ConfigError
-from twist_data.randomisation import TRAINING_DR, DRConfig, dr_preset
-from twist_data.render import DRRenderer
-from twist_data.rollout import random_policy
-from twist_data.tasks import TaskEnv
+from twist_sim.randomisation import TRAINING_DR, DRConfig, dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.rollout import random_policy
+from twist_sim.tasks import TaskEnv
 
 _LABEL_WIDTH = 72
 
@@ -29,7 +29,7 @@ def contact_sheet(task: str, views: int = 6, image_size: int = 64, warmup_steps:
 
     The state is reached by ``warmup_steps`` random actions from ``reset(seed)`` so that the
     agent is in a typical, not an initial, pose. ``rows`` defaults to the training preset
-    (:data:`~twist_data.randomisation.TRAINING_DR`) and ``heldout``.
+    (:data:`~twist_sim.randomisation.TRAINING_DR`) and ``heldout``.
     """
     if warmup_steps < 0 or scale < 1:
         raise ConfigError(f"warmup_steps must be >= 0 and scale >= 1, got {warmup_steps}, {scale}")

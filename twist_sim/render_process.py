@@ -6,13 +6,13 @@ vector and the DR parameters of each step. A thread would share the GIL with the
 physics and policy code (measured: 28 K=2 renders/s in a thread beside a busy Python loop,
 638 alone); a spawned process renders on the second core while the first steps the
 simulator. Frames are pure functions of (physics, parameters), so they are the same pixels
-as :class:`~twist_data.render.DRRenderer` renders in-process.
+as :class:`~twist_sim.render.DRRenderer` renders in-process.
 
 Protocol: :meth:`RenderProcess.submit` sends (physics, parameters) down a pipe and returns at
 once; :meth:`RenderProcess.gather` waits for every submitted frame and receives them as one
 byte block (an episode of 64x64 K=2 frames is ~12 MB, a few milliseconds through a pipe).
 The child exits when its pipe closes, so a parent killed with SIGKILL leaves nothing behind.
-It is started as ``python -m twist_data.render_process`` rather than through
+It is started as ``python -m twist_sim.render_process`` rather than through
 ``multiprocessing``: spawn would re-import the caller's ``__main__`` (a script without an
 ``if __name__ == "__main__"`` guard would fail), and fork would copy a parent holding torch
 threads and a GL context.
@@ -32,7 +32,7 @@ import numpy as np
 
 from twist_data import errors
 from twist_data.errors import RenderUnavailableError, TwistError
-from twist_data.randomisation import DRConfig, DRSampler
+from twist_sim.randomisation import DRConfig, DRSampler
 
 _GATHER = "gather"
 _CLOSE = "close"
@@ -44,7 +44,7 @@ class RenderProcessError(TwistError):
 
 def _serve(conn: Connection) -> None:
     """The child: one DRRenderer answering the parent's pipe until it closes."""
-    from twist_data.render import DRRenderer
+    from twist_sim.render import DRRenderer
 
     try:
         task, config, image_size, views, supersample = conn.recv()
@@ -87,7 +87,7 @@ def _serve(conn: Connection) -> None:
 
 
 class RenderProcess:
-    """A :class:`~twist_data.render.DRRenderer` of ``task`` in a spawned child process.
+    """A :class:`~twist_sim.render.DRRenderer` of ``task`` in a spawned child process.
 
     Offers the renderer's ``views``, ``image_size``, :meth:`sampler` and :meth:`provenance`,
     plus :meth:`submit` / :meth:`gather` for pipelined rendering. Use as a context manager,
@@ -101,7 +101,7 @@ class RenderProcess:
         self.views = views
         ours, theirs = socket.socketpair()
         self._process = subprocess.Popen(
-            [sys.executable, "-m", "twist_data.render_process", str(theirs.fileno())],
+            [sys.executable, "-m", "twist_sim.render_process", str(theirs.fileno())],
             pass_fds=[theirs.fileno()])
         theirs.close()
         self._conn = Connection(ours.detach())

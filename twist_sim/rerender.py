@@ -1,6 +1,6 @@
 """Re-rendering a dataset from its stored physics states: reproduce, re-randomise, add views.
 
-A dataset written through :func:`twist_data.rollout.simulated_spec` records, in
+A dataset written through :func:`twist_sim.rollout.simulated_spec` records, in
 ``spec.extra["render"]``, one block per range of views: the DR config, image size, supersampling
 and a digest of the background bank. With the stored ``data/physics`` and ``data/dr/*`` that
 is everything needed to redraw a frame, so images can be regenerated under a new DR config (or
@@ -25,16 +25,16 @@ from typing import Any
 import numpy as np
 
 from twist_data.errors import ConfigError, SchemaMismatchError
-from twist_data.randomisation import VIEW_PARAMS, DRConfig, stack_view_params
 from twist_data.reader import MatchingDataset, open_dataset
-from twist_data.render import DRRenderer, background_bank
-from twist_data.rollout import library_versions
 from twist_data.schema import DatasetSpec, Episode, image_digest, step_arrays
 from twist_data.seeding import derived_seed
 from twist_data.staging import built_aside, require_new_folder
 from twist_data.storage import StorageLayout
-from twist_data.tasks import task_spec
 from twist_data.writer import ShardWriter
+from twist_sim.randomisation import VIEW_PARAMS, DRConfig, stack_view_params
+from twist_sim.render import DRRenderer, background_bank
+from twist_sim.rollout import library_versions
+from twist_sim.tasks import task_spec
 
 log = logging.getLogger(__name__)
 

@@ -39,10 +39,10 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from twist_data.backgrounds import BackgroundBank, directory_bank, procedural_bank
 from twist_data.errors import ConfigError, RenderUnavailableError
-from twist_data.randomisation import COLOUR_GROUPS, VIEW_PARAMS, DRConfig, DRSampler
-from twist_data.tasks import TaskSpec, load_suite_env, model_rows, restore_physics, task_spec
+from twist_sim.backgrounds import BackgroundBank, directory_bank, procedural_bank
+from twist_sim.randomisation import COLOUR_GROUPS, VIEW_PARAMS, DRConfig, DRSampler
+from twist_sim.tasks import TaskSpec, load_suite_env, model_rows, restore_physics, task_spec
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ def _track(renderer: DRRenderer) -> None:
 
 class FrameRenderer(Protocol):
     """What recording needs of a renderer: :class:`DRRenderer` (in-process) or
-    :class:`twist_data.render_process.RenderProcess` (a child process, pipelined)."""
+    :class:`twist_sim.render_process.RenderProcess` (a child process, pipelined)."""
 
     views: int
     image_size: int
@@ -293,7 +293,7 @@ class DRRenderer:
 
     def submit(self, physics: np.ndarray, params: Mapping[str, np.ndarray]) -> None:
         """Render now and keep the frames for :meth:`gather` (the in-process twin of
-        :meth:`twist_data.render_process.RenderProcess.submit`)."""
+        :meth:`twist_sim.render_process.RenderProcess.submit`)."""
         self._submitted.append(self.render(physics, params))
 
     def gather(self) -> np.ndarray:

@@ -17,7 +17,10 @@ from typing import Any
 import numpy as np
 
 from twist_data.errors import ConfigError
-from twist_data.randomisation import (
+from twist_data.schema import DatasetSpec, Episode, EpisodeInfo
+from twist_data.seeding import derived_seed
+from twist_data.writer import ShardWriter
+from twist_sim.randomisation import (
     EPISODE_PARAMS,
     VIEW_PARAMS,
     DRConfig,
@@ -25,11 +28,8 @@ from twist_data.randomisation import (
     dynamics_params,
     stack_view_params,
 )
-from twist_data.render import DRRenderer, FrameRenderer
-from twist_data.schema import DatasetSpec, Episode, EpisodeInfo
-from twist_data.seeding import derived_seed
-from twist_data.tasks import DEFAULT_ACTION_REPEAT, Step, TaskEnv
-from twist_data.writer import ShardWriter
+from twist_sim.render import DRRenderer, FrameRenderer
+from twist_sim.tasks import DEFAULT_ACTION_REPEAT, Step, TaskEnv
 
 log = logging.getLogger(__name__)
 

@@ -1,9 +1,9 @@
 """twist's tasks and DR scenes as Gymnasium environments (``pip install twist[gym]``).
 
-``gymnasium.make("twist/cartpole-balance-heldout-v0")`` (after ``import twist_data.gym_env``,
-or as ``gymnasium.make("twist_data.gym_env:twist/cartpole-balance-heldout-v0")``) gives an
-environment for every task of :data:`~twist_data.tasks.TASKS` and DR preset of
-:data:`~twist_data.randomisation.DR_PRESETS`: observations are a dict of the rendered
+``gymnasium.make("twist/cartpole-balance-heldout-v0")`` (after ``import twist_sim.gym_env``,
+or as ``gymnasium.make("twist_sim.gym_env:twist/cartpole-balance-heldout-v0")``) gives an
+environment for every task of :data:`~twist_sim.tasks.TASKS` and DR preset of
+:data:`~twist_sim.randomisation.DR_PRESETS`: observations are a dict of the rendered
 view (``image``, uint8 [H, W, 3]) and/or the privileged state (``state``, float32 [S]);
 actions are in [-1, 1].
 
@@ -22,10 +22,10 @@ from typing import Any, ClassVar
 import numpy as np
 
 from twist_data.errors import ConfigError, import_extra
-from twist_data.randomisation import DR_PRESETS, dr_preset
-from twist_data.render import DRRenderer
 from twist_data.seeding import evaluation_episode_seed
-from twist_data.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, TASKS, TaskEnv
+from twist_sim.randomisation import DR_PRESETS, dr_preset
+from twist_sim.render import DRRenderer
+from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, TASKS, TaskEnv
 
 gymnasium = import_extra("gymnasium", "gym", "the Gymnasium environments need")
 spaces = gymnasium.spaces

@@ -2,7 +2,7 @@
 
 Nothing here renders. :class:`DRSampler` turns a :class:`DRConfig` into explicit per-view
 parameter arrays (the ``data/dr/<name>`` arrays of a dataset) and per-episode dynamics (the
-``meta/dr/<name>`` arrays); :mod:`twist_data.render` turns parameters and a physics state into
+``meta/dr/<name>`` arrays); :mod:`twist_sim.render` turns parameters and a physics state into
 pixels. Because the parameters are stored, any frame can be reproduced or re-randomised.
 """
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from twist_data.errors import ConfigError
 from twist_data.schema import ParamSpec
-from twist_data.tasks import Dynamics
+from twist_sim.tasks import Dynamics
 
 #: Material groups whose colours are randomised, in the order of ``dr/colour``'s rows. These
 #: are dm_control's shared materials: agent body, end effectors, decorations, targets, floor.
