@@ -23,15 +23,10 @@ import time
 
 import torch
 
+from twist_models.acting import ImageAgent, StateAgent
 from twist_models.agent import Agent
 from twist_models.config import AgentConfig, student_preset, teacher_preset
-from twist_models.stages.evaluation import (
-    EvalConfig,
-    ImageAgent,
-    StateAgent,
-    evaluate,
-    evaluation_envs,
-)
+from twist_models.stages.evaluation import EvalConfig, evaluate, evaluation_envs
 from twist_models.teacher import Teacher
 from twist_sim.tasks import TaskEnv
 

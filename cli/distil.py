@@ -13,8 +13,8 @@ from twist_data.errors import ConfigError
 from twist_models.config import replace_fields
 from twist_models.device import resolve_device
 from twist_models.distillation import DISTIL_PRESETS, RECIPES, DistilConfig, distil_preset
-from twist_models.stages.distill import Progress as DistilProgress
-from twist_models.stages.distill import distil, initialise_distributed, stored_config
+from twist_models.stages.distil import Progress as DistilProgress
+from twist_models.stages.distil import distil, initialise_distributed, stored_config
 from twist_models.stages.runlog import recorded_config
 
 app = new_app()

@@ -26,6 +26,7 @@ from twist_data.schema import ATTRS_KEY
 from twist_data.seeding import derived_seed
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
+from twist_models.acting import load_agent
 from twist_models.checkpoint import read_checkpoint
 from twist_models.config import teacher_preset
 from twist_models.policies import Pushes
@@ -37,7 +38,6 @@ from twist_models.stages.collect import (
     collect_preset,
     shard_seed,
 )
-from twist_models.stages.evaluation import load_agent
 from twist_models.stages.runlog import recorded_config
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, find_teacher, load_teacher
 from twist_sim.tasks import Dynamics, TaskEnv

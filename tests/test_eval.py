@@ -17,16 +17,14 @@ import torch
 
 from tests.conftest import run_command
 from twist_data.errors import ConfigError
+from twist_models.acting import AgentError, ScriptedAgent, load_agent, reference_agent
 from twist_models.agent import Agent
 from twist_models.config import AgentConfig, student_preset, teacher_preset
 from twist_models.stages.evaluation import (
     EvalConfig,
     EvalError,
-    ScriptedAgent,
     agents_setting,
     evaluate,
-    load_agent,
-    reference_agent,
     run_evaluation,
     summarise,
 )
@@ -288,7 +286,7 @@ def test_reference_agents_score_what_their_actions_earn(gl, agents, tmp_path) ->
     first = [r.episode_return for r in evaluate(random, config)]
     assert first == [r.episode_return for r in evaluate(random, config)]  # seeded per episode
     assert first != zero
-    with pytest.raises(EvalError, match="'zero' needs a task"):
+    with pytest.raises(AgentError, match="'zero' needs a task"):
         load_agent("zero")
 
     # Beside a trained agent the CLI takes the task from it; reference rows are so marked.
@@ -390,9 +388,9 @@ def test_an_imported_policy_is_evaluated_like_a_scripted_one(gl, tmp_path, monke
     assert policy.observe == ("state",) and not policy.uses_images
     assert ([r.episode_return for r in evaluate(policy, config)]
             == [r.episode_return for r in evaluate(ScriptedAgent(_constant(0.5)), config)])
-    with pytest.raises(EvalError, match="cannot import module 'no_such_module'"):
+    with pytest.raises(AgentError, match="cannot import module 'no_such_module'"):
         load_agent("no_such_module:push")
-    with pytest.raises(EvalError, match="has no 'pull'"):
+    with pytest.raises(AgentError, match="has no 'pull'"):
         load_agent("my_policies:pull")
 
     # From the CLI: the task comes from the policy, the name from its attribute.

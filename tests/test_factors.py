@@ -9,7 +9,8 @@ import pandas as pd
 import pytest
 
 from twist_data.errors import ConfigError
-from twist_models.stages.evaluation import EvalConfig, ScriptedAgent
+from twist_models.acting import ScriptedAgent
+from twist_models.stages.evaluation import EvalConfig
 from twist_models.stages.factors import FACTOR_TABLE, evaluate_factors, factor_table
 
 

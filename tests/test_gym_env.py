@@ -13,12 +13,8 @@ gymnasium = pytest.importorskip("gymnasium")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 from twist_data.errors import ConfigError, TwistError  # noqa: E402
-from twist_models.stages.evaluation import (  # noqa: E402
-    EvalConfig,
-    PolicyAgent,
-    evaluate,
-    run_evaluation,
-)
+from twist_models.acting import PolicyAgent  # noqa: E402
+from twist_models.stages.evaluation import EvalConfig, evaluate, run_evaluation  # noqa: E402
 from twist_sim.gym_env import TwistEnv, environment_id  # noqa: E402
 from twist_sim.randomisation import DR_PRESETS  # noqa: E402
 from twist_sim.tasks import TASKS  # noqa: E402

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from twist_models.distillation import distil_preset
-from twist_models.stages.distill import distil
+from twist_models.stages.distil import distil
 from twist_models.stages.evaluation import EvalConfig, run_evaluation
 from twist_models.stages.learning_curve import CurveError, evaluate_snapshots, snapshots
 
@@ -55,7 +55,7 @@ def test_closed_loop_agreement_is_measured_once_per_snapshot(run: Path, tmp_path
     kept = pd.read_csv(tmp_path / "curve" / "agreement.csv")
     assert list(kept["agent"]) == ["u00000004", "u00000008"] and (kept["episodes"] == 2).all()
     # Seeded by the evaluation's episodes: measured again, the same figures.
-    from twist_models.stages.evaluation import load_agent
+    from twist_models.acting import load_agent
     from twist_models.stages.learning_curve import closed_loop_agreement, run_teacher
 
     again = closed_loop_agreement(load_agent(run / "agent-00000008.pt"),

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from twist_data.errors import CheckpointError, CheckpointMismatchError, ConfigError
+from twist_data.errors import ConfigError
+from twist_models.checkpoint import CheckpointError, CheckpointMismatchError
 from twist_models.config import CNNConfig, WorldModelConfig, from_json, teacher_preset, to_json
 from twist_models.losses import (
     categorical_kl,

@@ -45,8 +45,8 @@ from twist_models.readout import (
     robust_standardisation,
     training_frames,
 )
-from twist_models.stages import distill as distill_stage
-from twist_models.stages.distill import DistilError, distil, load_student, stored_config
+from twist_models.stages import distil as distill_stage
+from twist_models.stages.distil import DistilError, distil, load_student, stored_config
 from twist_models.student import Student, copy_teacher_filter
 from twist_models.teacher import Teacher, save_teacher
 
@@ -559,7 +559,7 @@ def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Pat
         distil_preset("tiny", "dense", readout_mirror="average")
     with pytest.raises(ConfigError, match=r"a sign \(\+1 or -1\) per read component \(3\)"):
         dataclasses.replace(_paired(inputs[3]), mirror=(-1.0, 1.0))
-    from twist_models.stages import distill as stage
+    from twist_models.stages import distil as stage
 
     monkeypatch.setattr(stage, "state_mirror", lambda task: ())
     with pytest.raises(DistilError, match="task 'synthetic-cartpole' declares no mirror "
@@ -572,7 +572,7 @@ def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Pat
 
 def test_auto_mirroring_follows_the_tasks_declaration(inputs, tmp_path: Path,
                                                      monkeypatch) -> None:
-    from twist_models.stages import distill as stage
+    from twist_models.stages import distil as stage
 
     dataset, teacher_path, _, _ = inputs
     config = distil_preset("tiny", "readout", readout_mirror="auto", frame_eval_every=2)

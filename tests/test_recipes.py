@@ -29,7 +29,7 @@ from twist_models.frame_targets import (
     teacher_targets,
 )
 from twist_models.losses import frame_posterior_loss, weighted_state_loss
-from twist_models.stages.distill import distil, load_student, stored_config
+from twist_models.stages.distil import distil, load_student, stored_config
 from twist_models.student import Student
 from twist_models.teacher import Teacher, save_teacher
 

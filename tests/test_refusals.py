@@ -32,7 +32,7 @@ from twist_models.config import teacher_preset
 from twist_models.distillation import distil_preset
 from twist_models.stages.baselines import BaselineConfig, train_baseline
 from twist_models.stages.collect import MAX_FRAMES, CollectConfig, collect, collect_preset
-from twist_models.stages.distill import distil
+from twist_models.stages.distil import distil
 from twist_models.stages.evaluation import MAX_EPISODES, EvalConfig, run_evaluation
 from twist_models.teacher import Teacher, save_teacher
 

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from tests.conftest import run_command
-from twist_data.errors import BackgroundError, CheckpointError, ConfigError, PhysicsStateError
+from twist_data.errors import BackgroundError, ConfigError, PhysicsStateError
 from twist_data.reader import open_dataset
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
+from twist_models.checkpoint import CheckpointError
 from twist_models.teacher import find_teacher
 from twist_sim.backgrounds import (
     FAMILIES,

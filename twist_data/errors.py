@@ -63,14 +63,6 @@ class RenderUnavailableError(TwistError):
     """No OpenGL context could be created for offscreen rendering."""
 
 
-class CheckpointError(TwistError):
-    """A file is not a readable twist checkpoint, or holds a different kind of model."""
-
-
-class CheckpointMismatchError(CheckpointError):
-    """A checkpoint's configuration does not match the model or data it is loaded for."""
-
-
 class MissingExtraError(TwistError, ImportError):
     """An optional integration was asked for without its extra installed."""
 

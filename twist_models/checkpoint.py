@@ -17,11 +17,19 @@ from typing import Any
 import torch
 from torch import nn
 
-from twist_data.errors import CheckpointError, CheckpointMismatchError
+from twist_data.errors import TwistError
 from twist_models.config import to_json, without_removed
 
 FORMAT = "twist.checkpoint"
 VERSION = 1
+
+
+class CheckpointError(TwistError):
+    """A file is not a readable twist checkpoint, or holds a different kind of model."""
+
+
+class CheckpointMismatchError(CheckpointError):
+    """A checkpoint's configuration does not match the model or data it is loaded for."""
 
 
 @dataclass(frozen=True)

@@ -12,10 +12,12 @@ from typing import Any
 
 import torch
 
-from twist_data.errors import CheckpointError, CheckpointMismatchError, TwistError
+from twist_data.errors import TwistError
 from twist_data.reader import open_dataset
 from twist_models.checkpoint import (
     Checkpoint,
+    CheckpointError,
+    CheckpointMismatchError,
     read_checkpoint,
     restore,
     save_checkpoint,

@@ -27,7 +27,7 @@ import torch
 from twist_data.reader import open_dataset
 from twist_data.sampler import WindowSampler
 from twist_models.losses import distillation_loss
-from twist_models.stages.distill import load_student, stored_config
+from twist_models.stages.distil import load_student, stored_config
 from twist_models.student import Student
 from twist_models.teacher import Teacher, load_teacher
 

@@ -27,7 +27,7 @@ import json
 import torch
 
 from twist_data.sampler import SamplerConfig, WindowSampler
-from twist_models.stages.distill import load_student
+from twist_models.stages.distil import load_student
 from twist_models.teacher import load_teacher
 
 

@@ -38,7 +38,8 @@ import json
 
 import numpy as np
 
-from twist_models.stages.evaluation import EvalConfig, StateAgent, evaluate, load_agent
+from twist_models.acting import StateAgent, load_agent
+from twist_models.stages.evaluation import EvalConfig, evaluate
 from twist_sim.tasks import Step
 
 

@@ -26,8 +26,9 @@ from pathlib import Path
 
 import torch
 
+from twist_models.acting import ImageAgent
 from twist_models.agent import Agent
-from twist_models.stages.evaluation import EvalConfig, ImageAgent, run_evaluation
+from twist_models.stages.evaluation import EvalConfig, run_evaluation
 from twist_models.student import Student
 
 

@@ -50,7 +50,7 @@ from twist_models.config import (
 )
 from twist_models.device import COMPILE_SETTINGS, compile_mode, resolve_device
 from twist_models.dreamer import Dreamer
-from twist_models.stages.runlog import Board, RunFolder, append_csv
+from twist_models.stages.runlog import RunFolder, TensorBoardLog, append_csv
 
 log = logging.getLogger(__name__)
 
@@ -184,7 +184,7 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
     with removed_on_failure(out):  # a refused set-up leaves no config or log behind
         model, windows = _set_up(data, dataset, out, config, dreamer_config, resume, device)
     latest = RunFolder(out, "baseline", BaselineError, "a baseline run").latest
-    board = Board(Path(out))
+    board = TensorBoardLog(Path(out))
     try:
         _train(model, windows, config, dreamer_config, latest, Path(out), board, device,
                on_progress)
@@ -200,7 +200,7 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
 
 
 def _train(model: Dreamer, windows: Iterator[dict[str, torch.Tensor]], config: BaselineConfig,
-           dreamer_config: DreamerConfig, latest: Path, out: Path, board: Board, device: str,
+           dreamer_config: DreamerConfig, latest: Path, out: Path, board: TensorBoardLog, device: str,
            on_progress: Callable[[Progress], None] | None) -> None:
     """Updates until ``config.steps``: a metrics row (and TensorBoard scalars) every
     ``log_every``, a checkpoint every ``checkpoint_every``."""

@@ -67,7 +67,7 @@ from twist_models.curves import plot_learning_curves
 from twist_models.device import COMPILE_SETTINGS, compile_mode, resolve_device
 from twist_models.networks import single_threaded
 from twist_models.policies import Pushes, student_policy, teacher_policy
-from twist_models.stages.runlog import Board, RunFolder, append_csv, check_output
+from twist_models.stages.runlog import RunFolder, TensorBoardLog, append_csv, check_output
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teacher, save_teacher
 from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 from twist_sim.render import DRRenderer, FrameRenderer
@@ -467,7 +467,7 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
             extra = {"collect": to_json(config), "teacher": to_json(teacher_config)}
             writer = ShardWriter.create(out, shard, simulated_spec(env, renderer, extra))
         with writer:
-            run = _Run(out, path, folder, config, teacher_config, env, renderer, writer, seed,
+            run = Collector(out, path, folder, config, teacher_config, env, renderer, writer, seed,
                        torch_device, student)
             try:
                 return run.loop(on_progress)
@@ -507,7 +507,7 @@ def _run_folder(folder: Path) -> RunFolder:
     return RunFolder(folder, "collect", CollectError, "a collector run")
 
 
-class _Run:
+class Collector:
     """The state of one collector run; :meth:`loop` drives it."""
 
     def __init__(self, out: Path, path: Path, folder: Path, config: CollectConfig,
@@ -534,7 +534,7 @@ class _Run:
         self.learned_until: int | None = None
         self.best_teacher_return: float | None = None
         self.last_return: float | None = None
-        self.board = Board(folder)
+        self.board = TensorBoardLog(folder)
         self._load_or_create_teacher(teacher_config)
         _run_folder(folder).write_config(config, teacher=teacher_config, shard=path.name,
                                          seed=seed)

@@ -24,16 +24,10 @@ import torch
 
 from twist_data.errors import TwistError
 from twist_data.seeding import evaluation_episode_seed
+from twist_models.acting import ImageAgent, StateAgent, load_agent
 from twist_models.agent import AgentState
 from twist_models.curves import figure
-from twist_models.stages.evaluation import (
-    EvalConfig,
-    ImageAgent,
-    StateAgent,
-    evaluation_envs,
-    load_agent,
-    run_evaluation,
-)
+from twist_models.stages.evaluation import EvalConfig, evaluation_envs, run_evaluation
 
 SNAPSHOT = re.compile(r"agent-(\d{8})\.pt")
 ORACLE, FLOOR = "oracle", "zero"

@@ -34,6 +34,7 @@ import pandas as pd
 
 from twist_data.errors import ConfigError, TwistError
 from twist_data.staging import require_writable
+from twist_models.acting import REFERENCE_AGENTS
 from twist_models.config import require_positive
 from twist_models.curves import figure
 from twist_models.device import resolve_device
@@ -46,13 +47,8 @@ from twist_models.stages.collect import (
     collect_preset,
     run_dir,
 )
-from twist_models.stages.distill import distil
-from twist_models.stages.evaluation import (
-    REFERENCE_AGENTS,
-    EvalConfig,
-    paired_episodes,
-    run_evaluation,
-)
+from twist_models.stages.distil import distil
+from twist_models.stages.evaluation import EvalConfig, paired_episodes, run_evaluation
 from twist_models.stages.factors import FACTOR_TABLE, factor_table
 from twist_models.statistics import (
     format_paired,

@@ -35,7 +35,7 @@ def append_csv(path: Path, row: dict[str, Any], columns: tuple[str, ...]) -> Non
         writer.writerow(row)
 
 
-class Board:
+class TensorBoardLog:
     """TensorBoard scalars and images under ``folder/tensorboard`` when the ``tensorboard``
     package is installed (``pip install twist[tensorboard]``); otherwise nothing: the CSV
     files are the record either way. Events are flushed at most every ``flush_seconds`` (and

@@ -89,8 +89,8 @@ from twist_models.readout import (
     typical,
 )
 from twist_models.stages.runlog import (
-    Board,
     RunFolder,
+    TensorBoardLog,
     append_csv,
 )
 from twist_models.student import (
@@ -200,7 +200,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     rank, world = _rank_and_world()
     with removed_on_failure(out):  # a refused set-up leaves no config, log or plot behind
         student_config = _check_output(out, config, student_config, resume)
-        run = _Run(dataset_path, data, out, config, teacher_model, teacher_path,
+        run = Distiller(dataset_path, data, out, config, teacher_model, teacher_path,
                    student_config, torch_device, rank, world, rows)
     try:
         return run.loop(on_progress, None if time_limit is None
@@ -311,7 +311,7 @@ def _to_device(batch: Mapping[str, Any], device: torch.device) -> dict[str, torc
     return {k: torch.as_tensor(batch[k]).to(device, non_blocking=True) for k in KEYS}
 
 
-class _Run:
+class Distiller:
     """State of one distillation run; :meth:`loop` drives it."""
 
     def __init__(self, dataset_path: Path, data: MatchingDataset, out: Path,
@@ -374,7 +374,7 @@ class _Run:
                                                                       self.compiled_mode)
         self.heldout = self._heldout_batch()
         self.heldout_last: dict[str, float] = {}
-        self.board = Board(out) if self.writes else None
+        self.board = TensorBoardLog(out) if self.writes else None
         if self.writes:
             _run_folder(out).write_config(config, student=student_config, teacher=teacher_path,
                                           dataset=dataset_path, world_size=world)
