@@ -28,18 +28,17 @@ from twist_models.config import (
     ReadOutConfig,
     StudentConfig,
     from_json,
+    replace_fields,
     student_preset,
     teacher_preset,
     to_json,
 )
 from twist_models.curves import student_progress
-from twist_models.distillation import Distillation, distil_preset, split_context
+from twist_models.distillation import Distillation, ReadOutStage, distil_preset, split_context
 from twist_models.frame_targets import FrameRows
 from twist_models.losses import readout_loss
 from twist_models.networks import ImageEncoder
 from twist_models.readout import (
-    MAX_ATYPICAL_SHARE,
-    TYPICAL_SPREADS,
     StateReadOut,
     pair_velocities,
     robust_standardisation,
@@ -140,9 +139,9 @@ def test_the_typical_read_error_leaves_out_the_frames_the_first_stage_does() -> 
     features = torch.tensor([[1.5 / 2, 10.0, 0.0], [0.0, 10.0, 0.0]])
     every = np.sqrt((0.25**2 + 50.0**2) / 6)
     assert readout.error(features, state) == pytest.approx(every, rel=1e-5)
-    assert readout.error(features, state, TYPICAL_SPREADS) == pytest.approx(
+    assert readout.error(features, state, ReadOutStage().typical_spreads) == pytest.approx(
         np.sqrt(0.25**2 / 3), rel=1e-5)
-    assert np.isnan(readout.error(features[1:], state[1:], TYPICAL_SPREADS))
+    assert np.isnan(readout.error(features[1:], state[1:], ReadOutStage().typical_spreads))
 
 
 def test_exact_positions_rebuild_ds_state_and_the_teachers_embedding(inputs) -> None:
@@ -184,7 +183,7 @@ def test_a_readout_students_windows_come_with_the_frame_before_them(inputs) -> N
     data = open_dataset(dataset)
     config = distil_preset("tiny", "readout", steps=2)
     assert config.window_context == 1
-    assert dataclasses.replace(config, readout_first_velocity="zero").window_context == 0
+    assert replace_fields(config, {"readout_stage.first_velocity": "zero"}).window_context == 0
     assert distil_preset("tiny", "paper").window_context == 0
     drawn = WindowSampler(data, config.sampler("train", 3, batch_size=32)).batch()
     assert drawn["image"].shape[1] == config.length + 1
@@ -290,10 +289,10 @@ def test_a_lean_outside_its_range_or_without_a_readout_is_refused() -> None:
     with pytest.raises(ConfigError, match=re.escape(
             "lean must lie in (0, 2) for the reading's map to stay monotone, got 2.0")):
         ReadOutConfig(state_dim=1, lean=2.0)
-    with pytest.raises(ConfigError, match=re.escape("readout_lean must lie in (0, 2), got 0.0")):
+    with pytest.raises(ConfigError, match=re.escape("lean must lie in (0, 2), got 0.0")):
         distil_preset("tiny", "readout", readout_lean=0.0)
     with pytest.raises(ConfigError, match=re.escape(
-            "readout_lean=1.25 leans a read-out's angles; only a read-out student")):
+            "readout_stage.lean=1.25 leans a read-out's angles; only a read-out student")):
         distil_preset("tiny", "dense", readout_lean=1.25)
     # A bundle written before the lean existed reads its angles as read.
     stored = json.loads(json.dumps(to_json(StudentConfig(readout=ReadOutConfig(state_dim=1)))))
@@ -338,7 +337,8 @@ def test_gradients_reach_the_cnn_and_never_the_teachers_filter(inputs) -> None:
     # The first stage's term reaches the CNN too.
     student.zero_grad(set_to_none=True)
     features = student.encoder(torch.as_tensor(windows["image"][:, 0]))
-    student.readout.loss(features, torch.as_tensor(windows["state"][:, 0])).backward()
+    student.readout.loss(features, torch.as_tensor(windows["state"][:, 0]),
+                         ReadOutStage().huber_delta).backward()
     assert student.encoder.net[0].weight.grad.abs().sum() > 0
 
 
@@ -456,13 +456,15 @@ def test_the_readout_leaves_out_rare_far_frames_but_not_a_phase_of_the_task() ->
     # 100 frames: 5 atypical (a fallen pole, rare) or 40 (a swinging ball, a phase).
     rare = np.arange(100) >= 5
     common = np.arange(100) >= 40
-    assert 0.05 < MAX_ATYPICAL_SHARE < 0.40  # the two cases straddle it
-    np.testing.assert_array_equal(training_frames(rare, "auto"), rare)
-    assert training_frames(common, "auto").all()
-    np.testing.assert_array_equal(training_frames(common, "typical"), common)
-    assert training_frames(rare, "all").all()
-    assert distil_preset("tiny", "readout").readout_frames == "auto"
-    with pytest.raises(ConfigError, match="readout_frames must be one of auto, typical, all, "
+    share = distil_preset("tiny", "readout").readout_stage.max_atypical_share
+    assert 0.05 < share < 0.40  # the two cases straddle it
+    np.testing.assert_array_equal(training_frames(rare, "auto", share), rare)
+    assert training_frames(common, "auto", share).all()
+    assert not training_frames(common, "auto", 0.5).all()  # a wider share keeps it typical
+    np.testing.assert_array_equal(training_frames(common, "typical", share), common)
+    assert training_frames(rare, "all", share).all()
+    assert distil_preset("tiny", "readout").readout_stage.frames == "auto"
+    with pytest.raises(ConfigError, match="frames must be one of auto, typical, all, "
                                           "got 'most'"):
         distil_preset("tiny", "readout", readout_frames="most")
 
@@ -552,7 +554,7 @@ def test_mirror_augmentation_mirrors_each_frames_state_with_it(inputs, tmp_path:
 
 def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Path,
                                                            monkeypatch) -> None:
-    with pytest.raises(ConfigError, match="readout_mirror must be one of none, average, "
+    with pytest.raises(ConfigError, match="mirror must be one of none, average, "
                                           "augment, auto, got 'flip'"):
         distil_preset("tiny", "readout", readout_mirror="flip")
     with pytest.raises(ConfigError, match="only a read-out student"):

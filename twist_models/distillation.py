@@ -42,7 +42,6 @@ from twist_models.losses import (
     frame_posterior_loss,
     imagined_distillation_loss,
 )
-from twist_models.readout import TYPICAL_SPREADS
 from twist_models.rssm import FILTER_CHUNK
 from twist_models.student import Student
 from twist_models.teacher import Teacher
@@ -131,6 +130,61 @@ class DistilCompute:
         require_non_negative(self, "workers")
 
 
+#: Ways a read-out student may use the task's mirror symmetry (``ReadOutStage.mirror``).
+READOUT_MIRRORS = ("none", "average", "augment", "auto")
+#: What ``mirror=auto`` does where the task declares its mirror (elsewhere: none).
+AUTO_MIRROR = "augment"
+
+
+@dataclass(frozen=True)
+class ReadOutStage:
+    """How a read-out student (``DistilConfig.readout``) reads D and hands on what it reads
+    (the ``readout`` recipe; not in the paper)."""
+
+    frames: str = "auto"
+    """Which of D's frames its first stage trains on: ``typical`` (every read component
+    within ``typical_spreads`` of its median), ``all``, or ``auto``: typical unless more than
+    ``max_atypical_share`` of D is not (then all)."""
+    typical_spreads: float = 17.0
+    """Robust spreads (median and MAD over D) within which a frame's read components make it
+    typical: on cartpole with a balancing teacher, the pole within ~20° of upright, so that
+    the CNN is not spent on reading a fallen pole through a whole turn."""
+    max_atypical_share: float = 0.15
+    """Under ``frames=auto``, the share of D beyond which the atypical frames are a phase of
+    the task (cup-catch's ball in flight, 28% of D), not rare outliers (cartpole's fallen
+    poles, 9%), and every frame trains."""
+    huber_delta: float = 17.0
+    """Robust spreads up to which the read-out's loss is quadratic (linear beyond): on the
+    typical frames it trains on, a squared error."""
+    mirror: str = "none"
+    """How it uses the task's left-right mirror symmetry (``TaskSpec.mirror``): ``none``;
+    ``average``, each image read as the mean of its own reading and its mirror image's,
+    mirrored back (acting and windows; twice the CNN passes); ``augment``, that, and the
+    first stage trains on each frame mirrored with probability 1/2, its state mirrored with
+    it; ``auto``: :data:`AUTO_MIRROR` where the task declares its mirror, ``none`` elsewhere."""
+    lean: float = 1.0
+    """How much further from its centre (upright on cartpole) each angle it reads is handed
+    to the teacher's filter than it is read (``ReadOutConfig.lean``; 1: as read); any
+    ``steps`` of Eq. 3/4 train through it. The recipe's 1.25 was chosen on held-out scenes of
+    another evaluation seed than the reported one, among 1, 1.15, 1.25, 1.35 and 1.5."""
+    first_velocity: str = "zero"
+    """Where its velocities at a training window's first step come from, mid-episode:
+    ``read`` (the recipe's), the difference with the frame before the window, which the
+    sampler draws with it, as when acting; ``zero``: none, the velocities 0 while the
+    teacher's filter reads the true ones there, which only training shows."""
+
+    def __post_init__(self) -> None:
+        require_choice(self, "frames", ("auto", "typical", "all"))
+        require_choice(self, "mirror", READOUT_MIRRORS)
+        require_choice(self, "first_velocity", ("read", "zero"))
+        require_positive(self, "typical_spreads", "huber_delta")
+        if not 0 <= self.max_atypical_share <= 1:
+            raise ConfigError(f"max_atypical_share must lie in [0, 1], got "
+                              f"{self.max_atypical_share}")
+        if not 0 < self.lean < 2:
+            raise ConfigError(f"lean must lie in (0, 2), got {self.lean}")
+
+
 @dataclass(frozen=True)
 class DistilConfig:
     """One distillation run: student size, batches, the losses and the schedule. The defaults
@@ -152,7 +206,9 @@ class DistilConfig:
                                                  "frame_eval_every", "checkpoint_every",
                                                  "snapshot_every")},
         **{name: f"compute.{name}" for name in ("precision", "compile", "workers",
-                                                "resident_data")}}
+                                                "resident_data")},
+        **{f"readout_{name}": f"readout_stage.{name}" for name in ("frames", "mirror", "lean",
+                                                                  "first_velocity")}}
 
     recipe: str = "paper"
     """The named recipe this config started from (:data:`RECIPES`), kept as a label with the
@@ -200,30 +256,8 @@ class DistilConfig:
     own state encoder and filter, copied and fixed (:mod:`twist_models.readout`); its first
     stage regresses the state one frame shows, and any ``steps`` then train the CNN with
     Eq. 3/4 through the fixed filter (not in the paper)."""
-    readout_frames: str = "auto"
-    """Which of D's frames the read-out's first stage trains on: ``typical`` (every read
-    component within :data:`~twist_models.readout.TYPICAL_SPREADS` robust spreads of its
-    median), ``all``, or ``auto``: typical unless more than
-    :data:`~twist_models.readout.MAX_ATYPICAL_SHARE` of D is not (then all)."""
-    readout_mirror: str = "none"
-    """How a read-out student uses the task's left-right mirror symmetry
-    (``TaskSpec.mirror``): ``none``; ``average``, each image read as the mean of its own
-    reading and its mirror image's, mirrored back (acting and windows; twice the CNN passes);
-    ``augment``, that, and the first stage trains on each frame mirrored with probability 1/2,
-    its state mirrored with it (not in the paper; docs/findings.md); ``auto``:
-    :data:`AUTO_MIRROR` where the task declares its mirror, ``none`` elsewhere."""
-    readout_lean: float = 1.0
-    """How much further from its centre (upright on cartpole) a read-out student hands each
-    angle it reads to the teacher's filter than it reads it (``ReadOutConfig.lean``; 1: as
-    read); any ``steps`` of Eq. 3/4 train through it. The ``readout`` recipe's 1.25 was
-    chosen on held-out scenes of another evaluation seed than the reported one, among 1,
-    1.15, 1.25, 1.35 and 1.5 (not in the paper; docs/findings.md)."""
-    readout_first_velocity: str = "zero"
-    """Where a read-out student's velocities at a training window's first step come from, in
-    mid-episode: ``read`` (the ``readout`` recipe's), the difference with the frame before
-    the window, which the sampler draws with it, as when acting, where the step before is
-    always seen; ``zero``: none, the velocities 0 while the teacher's filter reads the true
-    ones there, which only training shows (docs/findings.md)."""
+    readout_stage: ReadOutStage = field(default_factory=ReadOutStage)
+    """How a read-out student reads D and hands on what it reads."""
     stage_optimiser: str = "keep"
     """What the updates on windows after a first stage (``frame_steps``) start from:
     ``reset`` (the ``readout`` recipe's), a fresh AdamW, since the first stage's moments were
@@ -270,18 +304,14 @@ class DistilConfig:
                               f"weights.frame_post={w.frame_post}, "
                               f"copy_dynamics={self.copy_dynamics}")
         require_choice(self, "encoder_norm", CNN_NORMS)
-        require_choice(self, "readout_frames", ("auto", "typical", "all"))
-        require_choice(self, "readout_mirror", READOUT_MIRRORS)
-        if self.readout_mirror != "none" and not self.readout:
-            raise ConfigError(f"readout_mirror={self.readout_mirror!r} averages a read-out "
+        stage = self.readout_stage
+        if stage.mirror != "none" and not self.readout:
+            raise ConfigError(f"readout_stage.mirror={stage.mirror!r} averages a read-out "
                               "over the mirror image; only a read-out student (readout) has one")
-        if not 0 < self.readout_lean < 2:
-            raise ConfigError(f"readout_lean must lie in (0, 2), got {self.readout_lean}")
-        if self.readout_lean != 1.0 and not self.readout:
-            raise ConfigError(f"readout_lean={self.readout_lean} leans a read-out's angles; "
+        if stage.lean != 1.0 and not self.readout:
+            raise ConfigError(f"readout_stage.lean={stage.lean} leans a read-out's angles; "
                               "only a read-out student (readout) has one")
         require_choice(self, "window_start", WINDOW_STARTS)
-        require_choice(self, "readout_first_velocity", ("read", "zero"))
         require_choice(self, "stage_optimiser", ("reset", "keep"))
         if self.view is not None and self.view < 0:
             raise ConfigError(f"view must be >= 0, got {self.view}")
@@ -305,9 +335,9 @@ class DistilConfig:
     @property
     def window_context(self) -> int:
         """Steps drawn before each window for what its first step reads (a read-out
-        student's frame before, ``readout_first_velocity``); :func:`split_context` takes
+        student's frame before, ``readout_stage.first_velocity``); :func:`split_context` takes
         them off."""
-        return int(self.readout and self.readout_first_velocity == "read")
+        return int(self.readout and self.readout_stage.first_velocity == "read")
 
     def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
         return SamplerConfig(length=self.length + self.window_context,
@@ -316,10 +346,6 @@ class DistilConfig:
                              holdout_every=self.schedule.holdout_every, split=split)
 
 
-#: Ways a read-out student may use the task's mirror symmetry (``readout_mirror``).
-READOUT_MIRRORS = ("none", "average", "augment", "auto")
-#: What ``readout_mirror=auto`` does where the task declares its mirror (elsewhere: none).
-AUTO_MIRROR = "augment"
 
 #: Recipes by name: what each sets on top of a size preset. ``paper``: Eq. 3 and 4 alone
 #: (with the student's RSSM started from the teacher's, which every preset does). ``dense``:
@@ -337,7 +363,8 @@ RECIPES: dict[str, dict[str, Any]] = {
     "dense": {"encoder_norm": "layer", "weights.frame_post": 1.0, "weights.state": 1.0,
               "compute.precision": "auto", "window_start": "teacher", "shared_draws": False},
     "readout": {"readout": True, "encoder_norm": "layer", "compute.precision": "auto",
-                "readout_mirror": "auto", "readout_lean": 1.25, "readout_first_velocity": "read",
+                "readout_stage.mirror": "auto", "readout_stage.lean": 1.25,
+                "readout_stage.first_velocity": "read",
                 "stage_optimiser": "reset"},
 }
 #: Updates of each recipe's single-frame stage at each size preset: one update of 64 frames
@@ -573,8 +600,8 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
         if student.readout is not None:
             features = student.encoder(batch["image"])
             frames["read_error"] = student.readout.error(features, batch["state"])
-            frames["read_error_typical"] = student.readout.error(features, batch["state"],
-                                                                 TYPICAL_SPREADS)
+            frames["read_error_typical"] = student.readout.error(
+                features, batch["state"], config.readout_stage.typical_spreads)
     deter = student.config.rssm.deter
     h_mse = float(terms["h"]) / deter
     # An h-MSE means little without the scale of the teacher's h (on cartpole its variance is

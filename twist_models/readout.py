@@ -5,7 +5,7 @@ images. This module lets the student hand that filter a state instead of an imag
 
 * a linear head on the CNN reads the components a single frame shows (positions, and the
   (cos, sin) of angles), trained per frame against D's states on D's typical frames (every
-  read component within :data:`TYPICAL_SPREADS` of its median), each error in units of its
+  read component within ``typical_spreads`` of its median), each error in units of its
   *robust* spread over D (median and MAD), so that the near-upright lean a balancing teacher
   keeps, which fills most of D, sets the scale rather than the rare fallen poles;
 * each velocity is a gain times the difference of two successive read-outs (an angle's
@@ -42,23 +42,6 @@ UNIT_CIRCLE = 1e-3
 MAD_TO_STD = 1.4826
 #: The least spread a read component is standardised by (a component D never varies).
 MIN_SCALE = 1e-3
-#: The read-out trains on D's frames whose read components all lie within this many robust
-#: spreads of their median (on cartpole with a balancing teacher: the pole within ~20° of
-#: upright). Measured: a CNN that must also read the fallen pole through a whole turn reads
-#: the near-upright lean half as precisely (the sine's RMSE within 10° of upright 0.035 and
-#: 0.042 against 0.017 for one trained within 20°), and the teacher acts on that lean.
-TYPICAL_SPREADS = 17.0
-#: When more than this share of D lies outside the typical frames, those frames are a phase
-#: of the task, not rare outliers, and the read-out trains on every frame (``auto``).
-#: Measured: cartpole's fallen poles are 9% of its D and leaving them out is worth 149 points;
-#: cup-catch's swinging ball is 28% of its D, and leaving it out costs 356 (paired, 30
-#: episodes): the read-out then misreads the ball in flight by 13-40 cm.
-MAX_ATYPICAL_SHARE = 0.15
-#: Robust spreads within which the read-out's loss is quadratic (beyond: linear): on the
-#: frames it trains on, a squared error.
-HUBER_DELTA = TYPICAL_SPREADS
-
-
 def unit_circle_pairs(states: np.ndarray, read: list[int]) -> list[tuple[int, int]]:
     """Adjacent components of ``read`` whose squares sum to 1 on every row of ``states``
     [N, S]: a (cos, sin) pair, as dm_control lays out an angle."""
@@ -148,19 +131,20 @@ def robust_standardisation(states: np.ndarray, config: ReadOutConfig
 
 
 def typical(states: np.ndarray, config: ReadOutConfig, centre: np.ndarray,
-            scale: np.ndarray) -> np.ndarray:
-    """Which rows of ``states`` [N, S] have every read component within
-    :data:`TYPICAL_SPREADS` robust spreads (``scale`` [R]) of its median (``centre`` [R]):
-    bool [N]."""
+            scale: np.ndarray, spreads: float) -> np.ndarray:
+    """Which rows of ``states`` [N, S] have every read component within ``spreads`` robust
+    spreads (``scale`` [R]) of its median (``centre`` [R]): bool [N]."""
     read = states[:, list(config.read)]
-    return (np.abs(read - centre) <= TYPICAL_SPREADS * scale).all(1)
+    return (np.abs(read - centre) <= spreads * scale).all(1)
 
 
-def training_frames(typical_rows: np.ndarray, mode: str) -> np.ndarray:
+def training_frames(typical_rows: np.ndarray, mode: str, max_atypical_share: float
+                    ) -> np.ndarray:
     """Which frames the read-out's first stage trains on, given which are typical
     (bool [N]): ``typical``, ``all``, or ``auto``: the typical ones unless more than
-    :data:`MAX_ATYPICAL_SHARE` of them are not -> bool [N]."""
-    if mode == "typical" or (mode == "auto" and 1.0 - typical_rows.mean() <= MAX_ATYPICAL_SHARE):
+    ``max_atypical_share`` of them are not -> bool [N]."""
+    if mode == "typical" or (mode == "auto"
+                             and 1.0 - typical_rows.mean() <= max_atypical_share):
         return typical_rows
     return np.ones_like(typical_rows, dtype=bool)
 
@@ -188,10 +172,11 @@ class StateReadOut(nn.Module):
         self._angular = [(k, position[v[1]], position[v[2]])
                          for k, v in enumerate(config.velocities) if len(v) == 3]
 
-    def loss(self, features: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+    def loss(self, features: torch.Tensor, state: torch.Tensor, delta: float) -> torch.Tensor:
         """The first stage's term: CNN features [..., F] and the true state [..., S] -> []:
-        the Huber loss of :meth:`errors` (:func:`~twist_models.losses.readout_loss`)."""
-        return readout_loss(self.errors(self.read(features), state), HUBER_DELTA)
+        the Huber loss of :meth:`errors`, quadratic to ``delta`` robust spreads
+        (:func:`~twist_models.losses.readout_loss`)."""
+        return readout_loss(self.errors(self.read(features), state), delta)
 
     def read(self, features: torch.Tensor) -> torch.Tensor:
         """The read components in the state's units, as the head gives them: [..., F] ->

@@ -39,7 +39,7 @@ class TaskSpec:
     """The sign each component of the state vector takes when the rendered view is mirrored
     left to right: the camera sits in the world's x = 0 plane facing along y, so the mirror is
     the reflection x -> -x, a symmetry of the task's dynamics. A read-out may average over it
-    (``DistilConfig.readout_mirror``); empty where not declared."""
+    (``ReadOutStage.mirror``); empty where not declared."""
 
 
 #: The six tasks of the paper's Table I.

@@ -4,7 +4,7 @@ the camera move read plain scenes less precisely?
 Draws ``--frames`` frames (a random view each) from the held-out episodes of every dataset
 given, and reports for every read-out agent its read-out error on them, in D's robust spreads
 (:meth:`~twist_models.readout.StateReadOut.error`): over every frame and over the typical
-ones (every read component within ``TYPICAL_SPREADS`` of its median), as the distiller's
+ones (every read component within ``ReadOutStage.typical_spreads`` of its median), as the distiller's
 ``read_error`` and ``read_error_typical`` do on its own held-out windows, but on one set of
 frames for all agents.
 
@@ -25,7 +25,7 @@ import torch
 from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.agent import Agent
-from twist_models.readout import TYPICAL_SPREADS
+from twist_models.distillation import ReadOutStage
 
 #: Frames per pass of the CNN.
 CHUNK = 256
@@ -54,7 +54,7 @@ def read_errors(agent: Agent, images: np.ndarray, states: torch.Tensor) -> tuple
     features = torch.cat([student.encoder(torch.as_tensor(images[i:i + CHUNK])).flatten(1).float()
                           for i in range(0, len(images), CHUNK)])
     return (student.readout.error(features, states),
-            student.readout.error(features, states, TYPICAL_SPREADS))
+            student.readout.error(features, states, ReadOutStage().typical_spreads))
 
 
 def main() -> None:

@@ -21,7 +21,7 @@ Heads:
 ``python research/probes/readout_heads.py RUN [--heads linear,keypoints3] [--updates 10000]
 [--scenes 30] [--agent AGENT]`` with RUN a main-job folder holding ``dataset`` and a read-out
 ``student``; ``--agent`` sweeps an agent bundle without training: each image alone, and, where the agent
-reads the mirror image too (``readout_mirror``), as it acts.
+reads the mirror image too (``readout_stage.mirror``), as it acts.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from torch.nn import functional as F
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.seeding import evaluation_episode_seed
 from twist_models.agent import Agent
+from twist_models.distillation import ReadOutStage
 from twist_models.networks import ImageEncoder
 from twist_models.readout import StateReadOut, typical
 from twist_sim.randomisation import dr_preset
@@ -206,7 +207,7 @@ def main() -> None:
     data = open_dataset(args.run / "dataset")
     states = data.column("state")
     keep = typical(states, trained.readout.config, trained.readout.mean.numpy(),
-                   trained.readout.scale.numpy())
+                   trained.readout.scale.numpy(), ReadOutStage().typical_spreads)
     steps = np.flatnonzero(keep)
     draw = angle_flattening(states, steps, args.flatten) if args.flatten else None
     for name in args.heads.split(","):

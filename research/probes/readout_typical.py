@@ -1,7 +1,7 @@
 """How well does a read-out student read D's frames that its first stage trained on, and the rest?
 
 The read-out's first stage trains on D's *typical* frames: every read component within
-``TYPICAL_SPREADS`` robust spreads (median and MAD) of its median (twist_models/readout.py).
+``ReadOutStage.typical_spreads`` robust spreads (median and MAD) of its median.
 On cartpole that is the pole within ~20° of upright. On a task whose states D holds mostly in
 one pose it can leave out the very phase the actor must act in. This script reads D's first
 ``--episodes`` held-out episodes (stored views, never trained on) and prints one JSON line:
@@ -22,6 +22,7 @@ import torch
 from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.agent import Agent
+from twist_models.distillation import ReadOutStage
 from twist_models.readout import typical
 
 
@@ -53,7 +54,8 @@ def main() -> None:
     for index in np.flatnonzero(heldout_episodes(dataset.n_episodes, args.holdout_every))[:args.episodes]:
         episode = dataset.episode(int(index))
         errors.append(read_all(agent, episode.image[:, 0]) - episode.state[:, read])
-        usual.append(typical(episode.state, readout.config, centre, scale))
+        usual.append(typical(episode.state, readout.config, centre, scale,
+                             ReadOutStage().typical_spreads))
     error, keep = np.concatenate(errors), np.concatenate(usual)
 
     def rms(rows: np.ndarray) -> list[float]:

@@ -82,7 +82,6 @@ from twist_models.frame_targets import (
     teacher_targets,
 )
 from twist_models.readout import (
-    TYPICAL_SPREADS,
     pair_velocities,
     robust_standardisation,
     training_frames,
@@ -190,7 +189,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
                                     state_head=config.weights.state > 0,
                                     readout=_pair_readout(data, rows, teacher_model,
                                                           _mirror_mode(config, data),
-                                                          config.readout_lean)
+                                                          config.readout_stage.lean)
                                     if rows is not None else None)
     spec = data.spec
     require_memory(config.batch_size * (config.length + config.window_context)
@@ -236,8 +235,8 @@ def _training_rows(data: MatchingDataset, config: DistilConfig) -> FrameRows:
 def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher,
                   mirror: str = "none", lean: float = 1.0) -> ReadOutConfig:
     """What a read-out student reads and derives, measured on D's training steps, the
-    mirror signs of what it reads where ``mirror`` (``readout_mirror``) asks for them, and
-    how far it leans the angles it reads (``readout_lean``)."""
+    mirror signs of what it reads where ``mirror`` (``readout_stage.mirror``) asks for them,
+    and how far it leans the angles it reads (``readout_stage.lean``)."""
     wm = teacher.config.world_model
     readout = pair_velocities(rows.state.numpy(), rows.steps == rows.episode_start,
                               data.spec.state_layout, wm.state_mlp, data.spec.task,
@@ -250,10 +249,11 @@ def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher,
 
 
 def _mirror_mode(config: DistilConfig, data: MatchingDataset) -> str:
-    """``readout_mirror`` for this D: ``auto`` resolved by whether its task declares a mirror."""
-    if config.readout_mirror == "auto":
+    """``readout_stage.mirror`` for this D: ``auto`` resolved by whether its task declares a
+    mirror."""
+    if config.readout_stage.mirror == "auto":
         return AUTO_MIRROR if state_mirror(data.spec.task) else "none"
-    return config.readout_mirror
+    return config.readout_stage.mirror
 
 
 def _mirror(data: MatchingDataset) -> tuple[float, ...]:
@@ -263,7 +263,7 @@ def _mirror(data: MatchingDataset) -> tuple[float, ...]:
     signs = state_mirror(task)
     if len(signs) != data.spec.state_dim:
         raise DistilError(f"task {task!r} declares no mirror symmetry for its "
-                          f"{data.spec.state_dim}-component state; set readout_mirror=none")
+                          f"{data.spec.state_dim}-component state; set readout_stage.mirror=none")
     return signs
 
 
@@ -358,7 +358,7 @@ class Distiller:
         move_optimiser_state(self.optimiser, device)
         self.targets = self._teacher_targets() if config.needs_teacher_targets else None
         # What the first stage draws frames from: the teacher's targets, or for a read-out
-        # student the states alone, of D's typical frames (readout.TYPICAL_SPREADS).
+        # student the states alone, of D's typical frames (``readout_stage``).
         self.rows = self.targets if self.targets is not None else rows
         if self.student.readout is not None:
             self.rows = self._readout_rows(self.rows)
@@ -380,13 +380,13 @@ class Distiller:
                                           dataset=dataset_path, world_size=world)
 
     def _readout_rows(self, rows: FrameRows) -> FrameRows:
-        readout = self.student.readout
+        readout, stage = self.student.readout, self.config.readout_stage
         usual = typical(rows.state.cpu().numpy(), readout.config, readout.mean.cpu().numpy(),
-                        readout.scale.cpu().numpy())
-        keep = training_frames(usual, self.config.readout_frames)
+                        readout.scale.cpu().numpy(), stage.typical_spreads)
+        keep = training_frames(usual, stage.frames, stage.max_atypical_share)
         log.info("the read-out trains on %d of %d frames (%d within %.0f robust spreads; "
-                 "readout_frames=%s)", keep.sum(), keep.size, usual.sum(), TYPICAL_SPREADS,
-                 self.config.readout_frames)
+                 "readout_stage.frames=%s)", keep.sum(), keep.size, usual.sum(),
+                 stage.typical_spreads, stage.frames)
         return rows.subset(keep)
 
     def _teacher_targets(self) -> TeacherTargets:
@@ -590,7 +590,8 @@ class Distiller:
             with precision_autocast(c.compute.precision, self.device):  # most recent frame first:
                 embed = self.student.encoder(batch["image"]).flatten(1).float()
             if self.student.readout is not None:
-                terms = {"readout": self.student.readout.loss(embed, batch["state"])}
+                terms = {"readout": self.student.readout.loss(embed, batch["state"],
+                                                              c.readout_stage.huber_delta)}
                 loss = terms["readout"]
             else:
                 terms = frame_terms(self.student, self.teacher, embed, batch["deter"],

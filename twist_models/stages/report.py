@@ -112,8 +112,8 @@ STUDENT_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "twist-readout-eq34": ("readout", {}),
     "twist-readout-no-stage": ("readout", {"frame_steps": 0}),
     "twist-readout-no-norm": ("readout", {"encoder_norm": "none", "steps": 0}),
-    "twist-readout-no-mirror": ("readout", {"readout_mirror": "none", "steps": 0}),
-    "twist-readout-no-lean": ("readout", {"readout_lean": 1.0, "steps": 0}),
+    "twist-readout-no-mirror": ("readout", {"readout_stage.mirror": "none", "steps": 0}),
+    "twist-readout-no-lean": ("readout", {"readout_stage.lean": 1.0, "steps": 0}),
 }
 #: Table I of the paper (held-out backgrounds, 500K frames, paper-scale models on GPU): the
 #: values as the paper reports them. Blank cells are values not transcribed.
