@@ -39,6 +39,10 @@ def new_app(**settings: Any) -> typer.Typer:
                        rich_markup_mode=None, **settings)
 
 
+#: What the ``sim`` extra installs: a command that needs it, run without it, says so.
+SIM_MODULES = ("mujoco", "dm_control")
+
+
 def run_app(app: typer.Typer, log_level: int = logging.WARNING) -> None:
     """Run a Typer app; known errors become one ``error:`` line on stderr and exit code 2.
     ``log_level`` applies to twist's own loggers; other libraries log warnings only."""
@@ -57,6 +61,13 @@ def run_app(app: typer.Typer, log_level: int = logging.WARNING) -> None:
         sys.exit(2)
     except typer.Abort:
         sys.exit(1)
+    except ModuleNotFoundError as exc:
+        if exc.name is None or exc.name.split(".")[0] not in SIM_MODULES:
+            raise
+        err.print(f"error: this command simulates or renders, which needs the sim extra "
+                  f"(pip install 'twist[sim]'); {exc.name!r} is not installed", markup=False,
+                  highlight=False, soft_wrap=True)
+        sys.exit(2)
     except Exception as exc:  # the other usage errors: unknown option, missing argument
         if not hasattr(exc, "format_message"):
             raise

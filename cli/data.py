@@ -13,7 +13,7 @@ import typer
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from twist_cli.common import err, new_app, out, parse_list, run_app
+from twist_cli.common import SIM_MODULES, err, new_app, out, parse_list, run_app
 from twist_data.errors import ConfigError, TwistError
 from twist_data.export import export_hdf5, export_video
 from twist_data.reader import open_dataset
@@ -21,7 +21,16 @@ from twist_data.staging import human_bytes, require_new_file
 from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import quick_problems, verify_dataset
-from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
+
+try:
+    from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
+except ModuleNotFoundError as missing:  # without the sim extra D is still read and exported
+    if (missing.name or "").split(".")[0] not in SIM_MODULES:
+        raise
+    DR_PRESETS, TRAINING_DR = {}, "train-wide"
+
+    def dr_preset(*args: object, **kwargs: object) -> None:
+        raise ModuleNotFoundError("No module named 'mujoco'", name="mujoco")
 
 app = new_app(help="Inspect, verify, export, re-render and synthesise TWIST matching datasets.",
               no_args_is_help=True)
