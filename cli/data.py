@@ -420,7 +420,7 @@ def contact_sheet_cmd(
     backgrounds: BackgroundsOption = None,
 ) -> None:
     """PNG of one state: a row of train-distribution views, a row of held-out views."""
-    from twist_sim.sheets import contact_sheet, default_rows, write_contact_sheet
+    from twist_sim.contact_sheets import contact_sheet, default_rows, write_contact_sheet
 
     rows = default_rows()
     if backgrounds is not None:

@@ -29,7 +29,7 @@ from twist_data.writer import ShardWriter
 from twist_models.acting import load_agent
 from twist_models.checkpoint import read_checkpoint
 from twist_models.config import teacher_preset
-from twist_models.policies import Pushes
+from twist_models.policies import RandomPushes
 from twist_models.stages.collect import (
     COLLECT_PRESETS,
     CollectConfig,
@@ -350,7 +350,7 @@ def test_frozen_noise_perturbs_only_the_frozen_teachers_actions(tmp_path: Path) 
 
 def test_pushes_start_at_the_given_rate_and_hold_one_action() -> None:
     every, longest = 20, 10
-    pushes = Pushes(every, longest, action_dim=2, seed=3)
+    pushes = RandomPushes(every, longest, action_dim=2, seed=3)
     actions = [pushes() for _ in range(100_000)]
     pushed = np.array([a is not None for a in actions])
     # A renewal process: idle spells of mean every - 1 steps (geometric), pushes of mean
@@ -368,7 +368,7 @@ def test_pushes_start_at_the_given_rate_and_hold_one_action() -> None:
         previous = action
     assert min(runs) == 1 and max(runs) == longest
     assert abs(np.mean(runs) - mean_push) < 0.2
-    again = Pushes(every, longest, action_dim=2, seed=3)
+    again = RandomPushes(every, longest, action_dim=2, seed=3)
     assert all((a is None and b is None) or np.array_equal(a, b)
                for a, b in zip(actions[:1000], (again() for _ in range(1000)), strict=True))
 

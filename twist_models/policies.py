@@ -15,7 +15,7 @@ from twist_sim.rollout import Policy
 from twist_sim.tasks import Step
 
 
-class Pushes:
+class RandomPushes:
     """Random shoves of one episode: on each step without a push under way one starts with
     probability 1 / ``every``, lasts 1..``longest`` steps (uniform) and holds one action
     drawn uniform in [-1, 1]^A. Seeded, so an episode's pushes are reproducible."""
@@ -38,7 +38,7 @@ class Pushes:
 
 
 def teacher_policy(teacher: Teacher, action_dim: int, device: torch.device | str = "cpu",
-                   explore: bool = True, noise: float = 0.0, pushes: Pushes | None = None,
+                   explore: bool = True, noise: float = 0.0, pushes: RandomPushes | None = None,
                    read: str = "sample") -> Policy:
     """The teacher as a rollout policy on privileged state: it filters its latent across the
     steps of an episode (reset at ``is_first``; z taken from the posterior as ``read`` says)

@@ -66,7 +66,7 @@ from twist_models.config import (
 from twist_models.curves import plot_learning_curves
 from twist_models.device import COMPILE_SETTINGS, compile_mode, resolve_device
 from twist_models.networks import single_threaded
-from twist_models.policies import Pushes, student_policy, teacher_policy
+from twist_models.policies import RandomPushes, student_policy, teacher_policy
 from twist_models.stages.runlog import RunFolder, TensorBoardLog, append_csv, check_output
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teacher, save_teacher
 from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
@@ -627,7 +627,7 @@ class Collector:
             policy = student_policy(agent, own_view, derived_seed(episode_seed, 8))
             name, step = "student", -1
         else:
-            pushes = (Pushes(c.push_every, c.push_steps, self.env.action_dim,
+            pushes = (RandomPushes(c.push_every, c.push_steps, self.env.action_dim,
                              derived_seed(episode_seed, 7)) if frozen and c.push_every else None)
             policy = teacher_policy(self.teacher, self.env.action_dim, self.device,
                                     noise=c.frozen_noise if frozen else 0.0, pushes=pushes)
