@@ -36,14 +36,16 @@ if [[ -d "$OUT/dataset/collect" ]]; then RESUME=(--resume); fi
 stage collect twist-collect --task "$TASK" --preset "$PRESET" --seed "$SEED" --dr "$DR" \
       --device "$DEVICE" --out "$OUT/dataset" "${RESUME[@]}"
 check_dataset() {  # what twist-data does with D: inspect, verify, re-render, export, draw
+  # A resumed job writes these again from the grown D (exports refuse to replace a file
+  # unless told to).
   rm -rf "$OUT/heldout"
   twist-data info "$OUT/dataset"
-  twist-data episodes "$OUT/dataset" --csv "$OUT/episodes.csv"
+  twist-data episodes "$OUT/dataset" --csv "$OUT/episodes.csv" --overwrite
   twist-data verify "$OUT/dataset" --rerender 20
   twist-data render "$OUT/dataset" "$OUT/heldout" --dr heldout --views 2 --episodes -1
-  twist-data export-video "$OUT/dataset" "$OUT/episode-last.mp4" --episode -1
-  twist-data export-video "$OUT/heldout" "$OUT/episode-last-heldout.mp4" --episode -1
-  twist-data export-hdf5 "$OUT/dataset" "$OUT/dataset.h5"
+  twist-data export-video "$OUT/dataset" "$OUT/episode-last.mp4" --episode -1 --overwrite
+  twist-data export-video "$OUT/heldout" "$OUT/episode-last-heldout.mp4" --episode -1 --overwrite
+  twist-data export-hdf5 "$OUT/dataset" "$OUT/dataset.h5" --overwrite
   twist-data contact-sheet "$TASK" "$OUT/contact-sheet.png"
   cp "$OUT/dataset/collect/collect-000/learning-curve.png" "$OUT/learning-curve.png"
 }
