@@ -22,15 +22,12 @@ from twist_data.summary import dataset_info
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import quick_problems, verify_dataset
 
-try:
-    from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
+try:  # for the DR options' help; the commands that simulate import twist_sim themselves
+    from twist_sim.randomisation import DR_PRESETS, TRAINING_DR
 except ModuleNotFoundError as missing:  # without the sim extra D is still read and exported
     if (missing.name or "").split(".")[0] not in SIM_MODULES:
         raise
     DR_PRESETS, TRAINING_DR = {}, "train-wide"
-
-    def dr_preset(*args: object, **kwargs: object) -> None:
-        raise ModuleNotFoundError("No module named 'mujoco'", name="mujoco")
 
 app = new_app(help="Inspect, verify, export, re-render and synthesise TWIST matching datasets.",
               no_args_is_help=True)
@@ -357,6 +354,8 @@ def render(
         raise ConfigError("--accept-other-gl applies to --reproduce alone")
     if workers != 1:
         raise ConfigError(f"--workers {workers} applies to --reproduce alone")
+    from twist_sim.randomisation import dr_preset
+
     config = dr_preset(dr, backgrounds)
     if supersample is None:
         supersample = open_dataset(dataset).spec.supersample or 1
@@ -401,6 +400,7 @@ def record(
     seed: Annotated[int, typer.Option(help="Seed of everything.")] = 0,
 ) -> None:
     """Record random-policy episodes of a task with K randomised views (prefill, demos)."""
+    from twist_sim.randomisation import dr_preset
     from twist_sim.rollout import record_dataset
 
     config = dr_preset(dr, backgrounds)
@@ -421,6 +421,7 @@ def contact_sheet_cmd(
 ) -> None:
     """PNG of one state: a row of train-distribution views, a row of held-out views."""
     from twist_sim.contact_sheets import contact_sheet, default_rows, write_contact_sheet
+    from twist_sim.randomisation import dr_preset
 
     rows = default_rows()
     if backgrounds is not None:
