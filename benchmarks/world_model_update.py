@@ -278,7 +278,7 @@ def bench_student(preset: str, repeats: int, device: torch.device,
 
     student_update = updater(student, student_loss)
 
-    naive = NaiveSkeleton(r, naive_cnn(config.cnn.depth), student.encoder.out_dim).to(device)
+    naive = NaiveSkeleton(r, naive_cnn(config.cnn.depth), student.perception.encoder.out_dim).to(device)
     naive_opt = torch.optim.Adam(naive.parameters(), 3e-4)
 
     def naive_update() -> None:

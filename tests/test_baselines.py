@@ -70,7 +70,7 @@ def test_baseline_learns_and_bundles_its_own_encoder_and_actor(dataset, tmp_path
     assert agent.info["baseline"] == kind
     image = torch.randint(0, 256, (2, 64, 64, 3), dtype=torch.uint8)
     with torch.no_grad():
-        assert torch.equal(agent.student.encoder(image), model.world_model.encoder(image))
+        assert torch.equal(agent.student.perception.encoder(image), model.world_model.encoder(image))
         feature = torch.randn(3, model_config.world_model.rssm.feature_dim)
         assert torch.equal(agent.actor(feature).mean, model.actor_critic.actor(feature).mean)
 

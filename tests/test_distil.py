@@ -36,9 +36,10 @@ from twist_models.config import (
 )
 from twist_models.distillation import DistilConfig, Distillation, distil_preset, latent_agreement
 from twist_models.losses import distillation_loss, imagined_distillation_loss
+from twist_models.perception import stack_frames, step_frames
 from twist_models.stages.distil import DistilError, distil, load_student, stored_config
 from twist_models.stages.runlog import append_csv, recorded_config, resume_conflicts
-from twist_models.student import Student, copy_teacher_dynamics, stack_frames, step_frames
+from twist_models.student import Student, copy_teacher_dynamics
 from twist_models.teacher import Teacher, load_teacher, save_teacher
 
 # Images are deterministic drawings of the state (plus randomised backgrounds), so the
@@ -146,7 +147,7 @@ def test_action_matching_compares_the_actors_modes_and_trains_only_the_student()
     assert float(loss.detach()) == pytest.approx(2.0 * by_hand, rel=1e-5)
     loss.backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0
-               for p in objective.student.encoder.parameters())
+               for p in objective.student.perception.encoder.parameters())
     assert all(p.grad is None for p in teacher.parameters())
 
 
@@ -186,7 +187,7 @@ def test_copied_dynamics_imagine_like_the_teacher() -> None:
         t_post = teacher.post_step(start, actions[:, 0], torch.zeros(2, teacher.obs_out[0]
                                    .in_features - teacher.config.deter), uniform=draws[:, 0])
         s_post = student.rssm.post_step(start, actions[:, 0],
-                                        torch.zeros(2, student.encoder.out_dim),
+                                        torch.zeros(2, student.perception.encoder.out_dim),
                                         uniform=draws[:, 0])
     assert not torch.allclose(before["deter"], expected["deter"], atol=1e-3)
     copied = latent_agreement(student, objective.teacher, batch, objective.config)
@@ -244,7 +245,7 @@ def test_short_run_improves_agreement_and_writes_an_agent(distil_inputs, tmp_pat
     rssm, latent, previous = student.rssm, student.rssm.initial(1), torch.zeros(1, 1)
     with torch.no_grad():
         for i, frame in enumerate(frames):
-            embed = student.encoder(torch.as_tensor(frame)[None])
+            embed = student.perception.encoder(torch.as_tensor(frame)[None])
             latent = rssm.post_step(latent, previous, embed, torch.tensor([i == 0]))
             previous = actor(rssm.feature(latent)).mode.clamp(-1, 1)
             np.testing.assert_allclose(actions[i], previous[0].numpy(), atol=1e-6)
@@ -599,7 +600,7 @@ def test_the_agent_acting_step_by_step_filters_as_the_student_does_on_windows(
         post, _ = student.observe(images, previous, is_first)
     torch.testing.assert_close(torch.cat(logits), post["logits"][0])
     assert student.rssm.obs_out[0].in_features == (
-        student.config.rssm.deter + frames * student.encoder.out_dim)
+        student.config.rssm.deter + frames * student.perception.encoder.out_dim)
 
 
 def test_an_agent_acting_on_posterior_means_is_the_students_filter_on_means() -> None:

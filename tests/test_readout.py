@@ -108,7 +108,7 @@ def test_readout_errors_and_loss_by_hand() -> None:
     config = ReadOutConfig(state_dim=5, read=(0, 1, 2), angles=((1, 2),),
                            velocities=((3, 0), (4, 1, 2)), gains=(1.0, 1.0),
                            encoder=MLPConfig(layers=1, units=4))
-    readout = Student(StudentConfig(readout=config)).readout
+    readout = Student(StudentConfig(readout=config)).perception.readout
     readout.set_standardisation(np.zeros(3), np.array([2.0, 0.1, 0.1]))
     # x read 0.5 off; the pole read at 0.3 rad with length 2 where it is at -0.1 rad.
     read = torch.tensor([[1.5, 2 * np.cos(0.3), 2 * np.sin(0.3)]], dtype=torch.float32)
@@ -153,18 +153,19 @@ def test_exact_positions_rebuild_ds_state_and_the_teachers_embedding(inputs) -> 
     state = rows.state[episode][None]  # [1, T, S], one whole episode
     is_first = torch.zeros(state.shape[:2], dtype=torch.bool)
     is_first[0, 0] = True
-    rebuilt = student.readout.window_state(state[..., :3], is_first)
+    rebuilt = student.perception.readout.window_state(state[..., :3], is_first)
     torch.testing.assert_close(rebuilt[0, 1:], state[0, 1:], atol=1e-4, rtol=1e-4)
     assert torch.equal(rebuilt[0, 0, 3:], torch.zeros(2))  # no frame before the first
     wm = teacher.world_model
     with torch.no_grad():
-        torch.testing.assert_close(student._embed_state(rebuilt)[0, 1:],
+        torch.testing.assert_close(student.perception.embed_state(rebuilt)[0, 1:],
                                    wm.embed(state)[0, 1:], atol=1e-4, rtol=1e-4)
 
 
 def test_a_window_in_mid_episode_reads_its_first_velocity_from_the_frame_before(inputs) -> None:
     _, _, teacher, rows = inputs
-    readout = Student(student_preset("tiny", teacher.config, readout=_paired(rows))).readout
+    student = Student(student_preset("tiny", teacher.config, readout=_paired(rows)))
+    readout = student.perception.readout
     state = rows.state[5:15][None]  # [1, 10, S]: steps 5-14 of the first episode
     is_first = torch.zeros(state.shape[:2], dtype=torch.bool)
     with_before = readout.window_state(state[..., 1:, :3], is_first[:, 1:], state[:, 0, :3])
@@ -213,7 +214,7 @@ def test_an_angle_difference_is_wrapped_whatever_the_pairs_length() -> None:
     config = ReadOutConfig(state_dim=5, read=(0, 1, 2), angles=((1, 2),),
                            velocities=((3, 0), (4, 1, 2)), gains=(10.0, 2.0),
                            encoder=MLPConfig(layers=1, units=4))
-    readout = Student(StudentConfig(readout=config)).readout
+    readout = Student(StudentConfig(readout=config)).perception.readout
     before = torch.tensor([0.5, np.cos(3.1), np.sin(3.1)], dtype=torch.float32)
     after = torch.tensor([0.7, np.cos(-3.1), np.sin(-3.1)], dtype=torch.float32)
     state = readout.state(after, before)
@@ -246,7 +247,7 @@ def _angle(positions: torch.Tensor) -> torch.Tensor:
 
 def test_a_leaned_readout_hands_on_the_angle_further_from_ds_median(inputs) -> None:
     config = dataclasses.replace(_paired(inputs[3]), lean=1.25)
-    readout = Student(StudentConfig(readout=config)).readout
+    readout = Student(StudentConfig(readout=config)).perception.readout
     angles = [0.0, 0.1, -0.2, np.pi / 2, 3.0, -3.1]
     handed = _handed(readout, angles)
     # By hand, about D's median angle (0 here): d + 0.25 sin d; the cart's reading untouched.
@@ -273,7 +274,7 @@ def test_a_leaned_mirror_averaged_reading_stays_mirror_symmetric(inputs) -> None
     config = dataclasses.replace(_mirrored(rows), lean=1.5)
     student = Student(student_preset("tiny", teacher.config, readout=config)).eval()
     # D's median angle off 0 must not matter: the mirror turns the angle over about 0.
-    student.readout.set_standardisation(np.array([0.0, np.cos(0.2), np.sin(0.2)]),
+    student.perception.readout.set_standardisation(np.array([0.0, np.cos(0.2), np.sin(0.2)]),
                                         np.array([1.0, 0.1, 0.1]))
     data = open_dataset(dataset)
     images = np.empty((4, *data.spec.image_shape), np.uint8)
@@ -329,17 +330,17 @@ def test_gradients_reach_the_cnn_and_never_the_teachers_filter(inputs) -> None:
     loss, _ = Distillation(student, teacher, config)(
         {k: torch.as_tensor(windows[k]) for k in ("image", "state", "action", "is_first")})
     loss.backward()
-    assert student.encoder.net[0].weight.grad.abs().sum() > 0
-    assert student.readout.head.weight.grad.abs().sum() > 0
+    assert student.perception.encoder.net[0].weight.grad.abs().sum() > 0
+    assert student.perception.readout.head.weight.grad.abs().sum() > 0
     assert all(p.grad is None for p in student.rssm.parameters())
-    assert all(p.grad is None for p in student.readout.encoder.parameters())
+    assert all(p.grad is None for p in student.perception.readout.encoder.parameters())
     assert all(p.grad is None for p in teacher.parameters())
     # The first stage's term reaches the CNN too.
     student.zero_grad(set_to_none=True)
-    features = student.encoder(torch.as_tensor(windows["image"][:, 0]))
-    student.readout.loss(features, torch.as_tensor(windows["state"][:, 0]),
+    features = student.perception.encoder(torch.as_tensor(windows["image"][:, 0]))
+    student.perception.readout.loss(features, torch.as_tensor(windows["state"][:, 0]),
                          ReadOutStage().huber_delta).backward()
-    assert student.encoder.net[0].weight.grad.abs().sum() > 0
+    assert student.perception.encoder.net[0].weight.grad.abs().sum() > 0
 
 
 def test_the_readout_recipe_travels_with_the_run_and_the_bundle(inputs, tmp_path: Path) -> None:
@@ -356,8 +357,8 @@ def test_the_readout_recipe_travels_with_the_run_and_the_bundle(inputs, tmp_path
         assert torch.equal(student.rssm.state_dict()[name], weight), name
     agent = Agent.load(summary.agent)
     assert agent.info["recipe"] == "readout" and agent.config.student.readout.velocities
-    assert torch.equal(agent.student.readout.scale, student.readout.scale)
-    assert (agent.student.readout.scale != 1).all()  # D's spread, not the initial value
+    assert torch.equal(agent.student.perception.readout.scale, student.perception.readout.scale)
+    assert (agent.student.perception.readout.scale != 1).all()  # D's spread, not the initial value
     first_stage = Agent.load(tmp_path / "run" / "agent-00000000.pt")
     assert first_stage.info["frame_updates"] == 4 and first_stage.info["student_updates"] == 0
     image = np.zeros((64, 64, 3), np.uint8)
@@ -441,10 +442,10 @@ def test_a_velocity_the_teacher_never_reads_is_neither_paired_nor_read(inputs,
     truth = torch.as_tensor(state[:steps])[None].float()
     is_first_window = torch.zeros(truth.shape[:2], dtype=torch.bool)
     is_first_window[0, 0] = True
-    rebuilt = student.readout.window_state(truth[..., :3], is_first_window)
+    rebuilt = student.perception.readout.window_state(truth[..., :3], is_first_window)
     assert torch.equal(rebuilt[..., 4], torch.zeros_like(rebuilt[..., 4]))
     with torch.no_grad():
-        torch.testing.assert_close(student._embed_state(rebuilt)[0, 1:],
+        torch.testing.assert_close(student.perception.embed_state(rebuilt)[0, 1:],
                                    teacher.world_model.embed(truth)[0, 1:], atol=1e-4, rtol=1e-4)
     # And the distiller takes such a teacher, recording what its student leaves out.
     path = save_teacher(tmp_path / "hidden.pt", teacher)
@@ -482,14 +483,14 @@ def test_a_mirror_averaged_readout_reads_a_mirrored_view_as_the_mirrored_state(i
     images = np.empty((4, *data.spec.image_shape), np.uint8)
     data.read_frames(np.arange(4), np.zeros(4, int), images)
     image = torch.as_tensor(images)
-    mirror = torch.tensor(student.readout.config.mirror)
+    mirror = torch.tensor(student.perception.readout.config.mirror)
     with torch.no_grad():
         _, read = student.step_embed(image, None)
         _, read_of_mirror = student.step_embed(image.flip(-2), None)
         # By hand: the mean of both readings, the mirror's mirrored back, x kept and the
         # (cos, sin) pair put on the unit circle.
-        ro = student.readout
-        mean = (ro.read(student.encoder(image)) + mirror * ro.read(student.encoder(
+        ro = student.perception.readout
+        mean = (ro.read(student.perception.encoder(image)) + mirror * ro.read(student.perception.encoder(
             image.flip(-2)))) / 2
     torch.testing.assert_close(read[:, 0], mean[:, 0])
     torch.testing.assert_close(read[:, 1:], mean[:, 1:] / mean[:, 1:].norm(dim=-1, keepdim=True))
@@ -611,3 +612,25 @@ def test_a_resume_accepts_gains_measured_again_to_the_last_digits_only(
     monkeypatch.setattr(distill_stage, "_pair_readout", measured_again(1 + 1e-3))
     with pytest.raises(DistilError, match="the student's sizes differ"):
         distil(dataset, tmp_path / "run", longer, teacher=teacher_path, resume=True)
+
+
+def test_a_student_saved_with_its_former_key_layout_loads_and_reads_alike(inputs) -> None:
+    # Students saved before perception was a part of its own kept the CNN and the read-out
+    # at the top level ("encoder.", "readout."); their bundles must still load and act.
+    dataset, _, teacher, rows = inputs
+    torch.manual_seed(0)
+    saved = Student(student_preset("tiny", teacher.config, readout=_paired(rows))).eval()
+    copy_teacher_filter(saved, teacher.world_model)
+    read = len(saved.config.readout.read)  # standardisation is a buffer: it must load too
+    saved.perception.readout.set_standardisation(np.full(read, 0.5), np.full(read, 2.0))
+    former = {k.replace("perception.", "", 1): v for k, v in saved.state_dict().items()}
+    assert any(k.startswith("readout.") for k in former)
+    torch.manual_seed(1)
+    loaded = Student(saved.config).eval()
+    loaded.load_state_dict(former)
+    data = open_dataset(dataset)
+    images = np.empty((4, *data.spec.image_shape), np.uint8)
+    data.read_frames(np.arange(4), np.zeros(4, int), images)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.step_embed(torch.as_tensor(images), None),
+                                   saved.step_embed(torch.as_tensor(images), None))

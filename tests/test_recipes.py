@@ -157,11 +157,11 @@ def test_gradients_reach_the_encoder_and_never_the_teacher(
     targets = teacher_targets(teacher, data, np.arange(data.n_episodes))
     # First stage: single frames.
     batch = FrameBatches(data, targets, batch_size=8, seed=1).batch()
-    embed = student.encoder(batch["image"]).flatten(1)
+    embed = student.perception.encoder(batch["image"]).flatten(1)
     terms = frame_terms(student, teacher, embed, batch["deter"], batch["state"],
                         batch["sensitivity"])
     (terms["frame_post_kl"] + terms["state"]).backward()
-    assert student.encoder.net[0].weight.grad.abs().sum() > 0
+    assert student.perception.encoder.net[0].weight.grad.abs().sum() > 0
     assert student.state_head.weight.grad.abs().sum() > 0
     assert all(p.grad is None for p in teacher.parameters())
     # Second stage: the terms beside Eq. 3/4 on windows.
@@ -174,7 +174,7 @@ def test_gradients_reach_the_encoder_and_never_the_teacher(
                              ("image", "state", "action", "is_first")})
     assert {"frame_post_kl", "state", "h", "post_kl"} <= set(terms)
     loss.backward()
-    assert student.encoder.net[0].weight.grad.abs().sum() > 0
+    assert student.perception.encoder.net[0].weight.grad.abs().sum() > 0
     assert all(p.grad is None for p in teacher.parameters())
 
 
@@ -327,10 +327,10 @@ def test_bfloat16_autocast_changes_the_arithmetic_not_the_objective(
         assert float(losses["bfloat16"][key]) == pytest.approx(float(value), rel=0.05), key
     # bfloat16 keeps 8 bits of mantissa: the embeddings differ, if only slightly.
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
-        low = student.encoder(batch["image"][:, :2])
+        low = student.perception.encoder(batch["image"][:, :2])
     assert low.dtype == torch.bfloat16
     with torch.no_grad():
-        assert not torch.equal(low.float(), student.encoder(batch["image"][:, :2]))
+        assert not torch.equal(low.float(), student.perception.encoder(batch["image"][:, :2]))
 
 
 def test_compile_settings_pick_the_whole_objective_or_its_filters_in_pieces(

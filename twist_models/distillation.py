@@ -597,10 +597,10 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
         frames = frame_agreement(student, teacher, embed, t_post["deter"], batch["state"])
         frame_kl = frame_posterior_loss(student.rssm.posterior_logits(t_post["deter"], embed),
                                         t_post["logits"])
-        if student.readout is not None:
-            features = student.encoder(batch["image"])
-            frames["read_error"] = student.readout.error(features, batch["state"])
-            frames["read_error_typical"] = student.readout.error(
+        if student.perception.readout is not None:
+            features = student.perception.encoder(batch["image"])
+            frames["read_error"] = student.perception.readout.error(features, batch["state"])
+            frames["read_error_typical"] = student.perception.readout.error(
                 features, batch["state"], config.readout_stage.typical_spreads)
     deter = student.config.rssm.deter
     h_mse = float(terms["h"]) / deter

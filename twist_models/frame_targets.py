@@ -175,7 +175,7 @@ def teacher_latent_before(teacher: Teacher, targets: TeacherTargets, starts: np.
 class FrameBatches:
     """Batches of single training frames with their teacher targets: a random row of the
     table and a random view (or ``view``), plus the ``frames - 1`` steps before it (the first
-    step of the episode repeated before its start, as :func:`~twist_models.student.stack_frames`).
+    step of the episode repeated before its start, as :func:`~twist_models.perception.stack_frames`).
 
     A batch: ``image`` uint8 [B, frames, H, W, 3] (most recent first), ``state`` [B, S],
     and from teacher targets ``deter`` [B, D] and ``sensitivity`` [B, S]."""

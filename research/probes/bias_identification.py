@@ -77,7 +77,7 @@ def fit_dynamics(dataset) -> tuple[np.ndarray, dict]:
 @torch.no_grad()
 def read(agent: Agent, images: np.ndarray) -> np.ndarray:
     """The agent's reading (with its mirror if it reads one) -> [T, 2] (x, angle)."""
-    out = agent.student.read_positions(torch.from_numpy(images)[:, None])[:, 0].numpy()
+    out = agent.student.perception.read_positions(torch.from_numpy(images)[:, None])[:, 0].numpy()
     return positions(out)
 
 

@@ -95,7 +95,7 @@ def main() -> None:
             student = load_any_student(path)
             if student.config.frames != 1:
                 raise SystemExit(f"{path}: only single-frame students are probed")
-            embed = torch.cat([student.encoder(torch.as_tensor(images[i:i + 512])[:, None])[:, 0]
+            embed = torch.cat([student.perception.encoder(torch.as_tensor(images[i:i + 512])[:, None])[:, 0]
                                for i in range(0, rows.size, 512)])
             result: dict[str, object] = {"student": path, "steps": int(rows.size),
                                          "upright_steps": int(upright.sum())}

@@ -191,7 +191,7 @@ def main() -> None:
     result["supervised_cnn"] = probe(ImageEncoder(cnn), True, data, target, train, tests,
                                      torch_scale, args, "supervised_cnn", **weights)
     if args.agent and not args.supervised_only:
-        encoder = Agent.load(args.agent).student.encoder
+        encoder = Agent.load(args.agent).student.perception.encoder
         result["student"] = probe(encoder, False, data, target, train, tests, torch_scale,
                                   args, "student", **weights)
     print(json.dumps(result))

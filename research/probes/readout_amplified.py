@@ -36,7 +36,7 @@ def amplified(agent: Agent, lean: float) -> Agent:
         agent.config.student.readout, lean=lean))
     agent.config = dataclasses.replace(agent.config, student=student)
     agent.student.config = student
-    agent.student.readout.config = student.readout
+    agent.student.perception.readout.config = student.perception.readout
     agent.info["lean_set_by"] = "research/probes/readout_amplified.py"
     return agent
 

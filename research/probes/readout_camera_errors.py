@@ -51,10 +51,10 @@ def heldout_frames(dataset: str, frames: int, seed: int, every: int = 10
 def read_errors(agent: Agent, images: np.ndarray, states: torch.Tensor) -> tuple[float, float]:
     """The agent's read-out error over every frame and over the typical ones."""
     student = agent.student.eval()
-    features = torch.cat([student.encoder(torch.as_tensor(images[i:i + CHUNK])).flatten(1).float()
+    features = torch.cat([student.perception.encoder(torch.as_tensor(images[i:i + CHUNK])).flatten(1).float()
                           for i in range(0, len(images), CHUNK)])
-    return (student.readout.error(features, states),
-            student.readout.error(features, states, ReadOutStage().typical_spreads))
+    return (student.perception.readout.error(features, states),
+            student.perception.readout.error(features, states, ReadOutStage().typical_spreads))
 
 
 def main() -> None:

@@ -101,7 +101,7 @@ def main() -> None:
     args = parser.parse_args()
 
     agent = Agent.load(args.agent)
-    readout = agent.student.readout
+    readout = agent.student.perception.readout
     assert readout is not None, "pass a read-out student (twist-distil --recipe readout)"
     teacher = load_agent(args.teacher)
     assert isinstance(teacher, StateAgent), "pass a teacher checkpoint"

@@ -28,17 +28,18 @@ import torch
 
 from twist_models.acting import ImageAgent
 from twist_models.agent import Agent
+from twist_models.perception import StateReading
 from twist_models.stages.evaluation import EvalConfig, run_evaluation
 from twist_models.student import Student
 
 
-class EnsembleStudent(Student):
-    """The first member, reading each image as the mean of every member's read-out."""
+class EnsembleReading(StateReading):
+    """The first member's perception, reading each image as the mean of every member's."""
 
     def __init__(self, members: list[Student]) -> None:
         super().__init__(members[0].config)
-        self.load_state_dict(members[0].state_dict())
-        self.members = members  # a plain list: their weights are not this module's
+        self.load_state_dict(members[0].perception.state_dict())
+        self.members = [m.perception for m in members]  # a plain list: not this module's
 
     def read_positions(self, image: torch.Tensor) -> torch.Tensor:
         read = torch.stack([member.read_positions(image) for member in self.members]).mean(0)
@@ -50,16 +51,16 @@ class EnsembleStudent(Student):
 
 
 def ensemble_reading(members: list[Agent]) -> Agent:
-    """The first member's agent, its student reading as :class:`EnsembleStudent`."""
+    """The first member's agent, its student reading as :class:`EnsembleReading`."""
     head = members[0].student
     for other in members[1:]:
-        readout = other.student.readout
-        if not (torch.allclose(readout.mean, head.readout.mean, rtol=1e-6)
-                and torch.allclose(readout.gains, head.readout.gains, rtol=1e-6)):
+        readout = other.student.perception.readout
+        if not (torch.allclose(readout.mean, head.perception.readout.mean, rtol=1e-6)
+                and torch.allclose(readout.gains, head.perception.readout.gains, rtol=1e-6)):
             raise SystemExit("the members were not distilled from the same D (their read-out "
                              "standardisation or velocity gains differ)")
     ensemble = members[0]
-    ensemble.student = EnsembleStudent([m.student for m in members]).eval()
+    ensemble.student.perception = EnsembleReading([m.student for m in members]).eval()
     return ensemble
 
 

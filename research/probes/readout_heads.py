@@ -196,9 +196,9 @@ def main() -> None:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
     if args.agent is not None:
         student = Agent.load(args.agent).student
-        readings = {"image": lambda im: student.readout.read(student.encoder(im))}
-        if student.readout.config.mirror:  # the agent's own reading: the mean with the mirror's
-            readings["mirror-averaged"] = student.read_positions
+        readings = {"image": lambda im: student.perception.readout.read(student.perception.encoder(im))}
+        if student.perception.readout.config.mirror:  # the agent's own reading: the mean with the mirror's
+            readings["mirror-averaged"] = student.perception.read_positions
         for reading, read in readings.items():
             print(json.dumps({"head": "agent", "agent": str(args.agent), "reading": reading,
                               **sweep(read, args.scenes)}), flush=True)
@@ -206,30 +206,30 @@ def main() -> None:
     trained = Agent.load(args.init or args.run / "student" / "agent.pt").student
     data = open_dataset(args.run / "dataset")
     states = data.column("state")
-    keep = typical(states, trained.readout.config, trained.readout.mean.numpy(),
-                   trained.readout.scale.numpy(), ReadOutStage().typical_spreads)
+    keep = typical(states, trained.perception.readout.config, trained.perception.readout.mean.numpy(),
+                   trained.perception.readout.scale.numpy(), ReadOutStage().typical_spreads)
     steps = np.flatnonzero(keep)
     draw = angle_flattening(states, steps, args.flatten) if args.flatten else None
     for name in args.heads.split(","):
         torch.manual_seed(args.seed)
         encoder = ImageEncoder(trained.config.cnn)
-        readout = StateReadOut(trained.readout.config, encoder.out_dim)
-        readout.load_state_dict(trained.readout.state_dict())  # standardisation and layout
+        readout = StateReadOut(trained.perception.readout.config, encoder.out_dim)
+        readout.load_state_dict(trained.perception.readout.state_dict())  # standardisation and layout
         outputs = len(readout.config.read)
         model = (LinearHead(encoder, outputs) if name == "linear"
                  else KeypointHead(encoder, int(name.removeprefix("keypoints")), 32, outputs))
         mirror = None
         if args.init is not None:
-            encoder.load_state_dict(trained.encoder.state_dict())
-            model.head.load_state_dict(trained.readout.head.state_dict())
-            if trained.readout.config.mirror:
+            encoder.load_state_dict(trained.perception.encoder.state_dict())
+            model.head.load_state_dict(trained.perception.readout.head.state_dict())
+            if trained.perception.readout.config.mirror:
                 mirror = torch.tensor(state_mirror(data.spec.task), dtype=torch.float32)
         seconds = train(model, readout, data, steps, args.updates, args.seed, draw, mirror)
         model.eval()
         if args.save_agent is not None and args.init is not None:
             agent = Agent.load(args.init)
-            agent.student.encoder.load_state_dict(encoder.state_dict())
-            agent.student.readout.head.load_state_dict(model.head.state_dict())
+            agent.student.perception.encoder.load_state_dict(encoder.state_dict())
+            agent.student.perception.readout.head.load_state_dict(model.head.state_dict())
             agent.save(args.save_agent)
 
         def read(image: torch.Tensor, model: nn.Module = model,

@@ -57,8 +57,8 @@ def read_positions(agent: Agent, images: np.ndarray, batch: int = 256) -> np.nda
     student, out = agent.student, []
     for i in range(0, len(images), batch):
         image = torch.from_numpy(images[i:i + batch])[:, None]
-        features = student.encoder(image).flatten(1).float()
-        out.append(student.readout.positions(features).numpy())
+        features = student.perception.encoder(image).flatten(1).float()
+        out.append(student.perception.readout.positions(features).numpy())
     return np.concatenate(out)
 
 
@@ -95,7 +95,7 @@ def trajectory_errors(agent: Agent, dataset, folder: Path, name: str, seed: int,
     compared with the truth; one JSON line per episode."""
     spec = dataset.spec
     supersample = int(render_blocks(spec)[0]["supersample"])
-    read_index = list(agent.student.readout.config.read)
+    read_index = list(agent.student.perception.readout.config.read)
     with DRRenderer(spec.task, dr_preset("heldout"), spec.image_height, 1,
                     supersample) as renderer:
         sampler = renderer.sampler(seed)
@@ -129,7 +129,7 @@ def component_errors(agent: Agent, dataset, episodes: np.ndarray, settings: list
                      backgrounds: str | None, seed: int) -> None:
     """One JSON line per setting: each read component's RMS error and the scenes' errors in
     robust spreads."""
-    readout = agent.student.readout
+    readout = agent.student.perception.readout
     read = list(readout.config.read)
     scale = readout.scale.numpy().astype(np.float64)
     for setting in settings:
@@ -166,7 +166,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_grad_enabled(False)
     agent = Agent.load(args.agent)
-    if agent.student.readout is None:
+    if agent.student.perception.readout is None:
         raise SystemExit(f"{args.agent} is not a read-out student")
     dataset = open_dataset(args.dataset)
     if args.trajectories is not None:
@@ -179,7 +179,7 @@ def main() -> None:
         component_errors(agent, dataset, episodes, args.settings.split(","), args.backgrounds,
                          args.seed)
         return
-    read_index = list(agent.student.readout.config.read)
+    read_index = list(agent.student.perception.readout.config.read)
     near_sine = math.sin(math.radians(args.near))
     for setting in args.settings.split(","):
         frames = rendered(dataset, episodes, setting, args.backgrounds, args.seed)

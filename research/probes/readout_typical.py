@@ -32,7 +32,7 @@ def read_all(agent: Agent, images: np.ndarray, batch: int = 256) -> np.ndarray:
     student, out = agent.student, []
     for i in range(0, len(images), batch):
         image = torch.from_numpy(images[i:i + batch])[:, None]
-        out.append(student.readout.read(student.encoder(image).flatten(1).float()).numpy())
+        out.append(student.perception.readout.read(student.perception.encoder(image).flatten(1).float()).numpy())
     return np.concatenate(out)
 
 
@@ -44,7 +44,7 @@ def main() -> None:
     parser.add_argument("--holdout-every", type=int, default=10)
     args = parser.parse_args()
     agent = Agent.load(args.agent)
-    readout = agent.student.readout
+    readout = agent.student.perception.readout
     if readout is None:
         raise SystemExit(f"{args.agent} is not a read-out student")
     dataset = open_dataset(args.dataset)

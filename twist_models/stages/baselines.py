@@ -236,7 +236,7 @@ def image_agent(model: Dreamer, info: dict[str, Any]) -> Agent:
     student = StudentConfig(rssm=config.world_model.rssm,
                             action_dim=config.world_model.action_dim, cnn=config.world_model.cnn)
     agent = Agent(AgentConfig(student=student, actor_critic=config.actor_critic), info)
-    agent.student.encoder.load_state_dict(wm.encoder.state_dict())
+    agent.student.perception.encoder.load_state_dict(wm.encoder.state_dict())
     agent.student.rssm.load_state_dict(wm.rssm.state_dict())
     agent.actor.load_state_dict(model.actor_critic.actor.state_dict())
     return agent

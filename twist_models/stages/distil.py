@@ -344,9 +344,9 @@ class Distiller:
                     f"{config.frame_steps} cannot extend it now")
         else:
             self.updates, self.frame_updates, self.seconds, self.heldout_first = 0, 0, 0.0, {}
-            if self.student.readout is not None:
+            if self.student.perception.readout is not None:
                 copy_teacher_filter(self.student, self.teacher.world_model)
-                self.student.readout.set_standardisation(*robust_standardisation(
+                self.student.perception.readout.set_standardisation(*robust_standardisation(
                     rows.state.numpy(), student_config.readout))
             elif config.copy_dynamics:
                 copy_teacher_dynamics(self.student, self.teacher.world_model.rssm)
@@ -360,7 +360,7 @@ class Distiller:
         # What the first stage draws frames from: the teacher's targets, or for a read-out
         # student the states alone, of D's typical frames (``readout_stage``).
         self.rows = self.targets if self.targets is not None else rows
-        if self.student.readout is not None:
+        if self.student.perception.readout is not None:
             self.rows = self._readout_rows(self.rows)
         self.objective: nn.Module = Distillation(
             self.student, self.teacher, config,
@@ -380,7 +380,7 @@ class Distiller:
                                           dataset=dataset_path, world_size=world)
 
     def _readout_rows(self, rows: FrameRows) -> FrameRows:
-        readout, stage = self.student.readout, self.config.readout_stage
+        readout, stage = self.student.perception.readout, self.config.readout_stage
         usual = typical(rows.state.cpu().numpy(), readout.config, readout.mean.cpu().numpy(),
                         readout.scale.cpu().numpy(), stage.typical_spreads)
         keep = training_frames(usual, stage.frames, stage.max_atypical_share)
@@ -588,9 +588,9 @@ class Distiller:
                 batch["state"][flip] = batch["state"][flip] * mirror
             batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
             with precision_autocast(c.compute.precision, self.device):  # most recent frame first:
-                embed = self.student.encoder(batch["image"]).flatten(1).float()
-            if self.student.readout is not None:
-                terms = {"readout": self.student.readout.loss(embed, batch["state"],
+                embed = self.student.perception.encoder(batch["image"]).flatten(1).float()
+            if self.student.perception.readout is not None:
+                terms = {"readout": self.student.perception.readout.loss(embed, batch["state"],
                                                               c.readout_stage.huber_delta)}
                 loss = terms["readout"]
             else:
