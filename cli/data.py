@@ -286,15 +286,16 @@ BackgroundsOption = Annotated[Path | None, typer.Option(
 @app.command()
 def tasks() -> None:
     """The simulated tasks with their state, action and physics dimensions."""
-    from twist_sim.tasks import TASKS, TaskEnv
+    from twist_sim.tasks import TASKS, TaskEnv, load_task_modules
 
+    load_task_modules()
     table = Table(title="twist tasks (action repeat 2)")
-    for column in ("task", "dm_control", "state", "action", "physics", "state layout"):
+    for column in ("task", "source", "state", "action", "physics", "state layout"):
         table.add_column(column)
     for name, spec in TASKS.items():
         env = TaskEnv(name)
         layout = ", ".join(f"{k}:{n}" for k, n in env.state_layout)
-        table.add_row(name, f"{spec.domain}/{spec.task}", str(env.state_dim), str(env.action_dim),
+        table.add_row(name, spec.source, str(env.state_dim), str(env.action_dim),
                       str(env.physics_dim), layout)
     out.print(table)
 

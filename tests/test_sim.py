@@ -29,7 +29,7 @@ def test_state_and_physics_dimensions(task: str) -> None:
 
 
 def test_unknown_task_lists_valid_names() -> None:
-    with pytest.raises(UnknownTaskError, match="valid tasks are: cartpole-balance, cheetah-run"):
+    with pytest.raises(UnknownTaskError, match="registered tasks are: cartpole-balance, cheetah-run"):
         TaskEnv("cartpole-swingup")
 
 

@@ -51,6 +51,11 @@ class UnknownTaskError(TwistError):
     """A task name that is not one of the supported simulated tasks."""
 
 
+class TaskRegistrationError(TwistError, ValueError):
+    """A task cannot be registered: a name taken already, a spec that does not describe a
+    usable task, or a task module that does not import."""
+
+
 class PhysicsStateError(TwistError):
     """A physics state vector that does not fit the task (wrong length, not finite)."""
 

@@ -2,7 +2,7 @@
 
 ``gymnasium.make("twist/cartpole-balance-heldout-v0")`` (after ``import twist_sim.gym_env``,
 or as ``gymnasium.make("twist_sim.gym_env:twist/cartpole-balance-heldout-v0")``) gives an
-environment for every task of :data:`~twist_sim.tasks.TASKS` and DR preset of
+environment for every registered task (:data:`~twist_sim.tasks.TASKS`, a user's too) and DR preset of
 :data:`~twist_sim.randomisation.DR_PRESETS`: observations are a dict of the rendered
 view (``image``, uint8 [H, W, 3]) and/or the privileged state (``state``, float32 [S]);
 actions are in [-1, 1].
@@ -25,7 +25,7 @@ from twist_data.errors import ConfigError, import_extra
 from twist_data.seeding import evaluation_episode_seed
 from twist_sim.randomisation import DR_PRESETS, dr_preset
 from twist_sim.render import DRRenderer
-from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, TASKS, TaskEnv
+from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, TASKS, TaskEnv, load_task_modules
 
 gymnasium = import_extra("gymnasium", "gym", "the Gymnasium environments need")
 spaces = gymnasium.spaces
@@ -121,7 +121,9 @@ def environment_id(task: str, dr: str) -> str:
 
 
 def register_environments() -> list[str]:
-    """Register every task x DR preset with Gymnasium (done on import); returns the ids."""
+    """Register every task x DR preset with Gymnasium (done on import, and again by
+    :func:`~twist_sim.tasks.register_task`); returns the ids."""
+    load_task_modules()
     ids = []
     for task in TASKS:
         for dr in DR_PRESETS:

@@ -42,7 +42,7 @@ import numpy as np
 from twist_data.errors import ConfigError, RenderUnavailableError
 from twist_sim.backgrounds import BackgroundBank, directory_bank, procedural_bank
 from twist_sim.randomisation import COLOUR_GROUPS, VIEW_PARAMS, DRConfig, DRSampler
-from twist_sim.tasks import TaskSpec, load_suite_env, model_rows, restore_physics, task_spec
+from twist_sim.tasks import TaskSpec, load_environment, model_rows, restore_physics, task_spec
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +54,7 @@ _MAX_FRAMEBUFFER = 2048
 
 def load_task_model(spec: TaskSpec):
     """The task's compiled MuJoCo model, as dm_control builds it (no simulation state)."""
-    return load_suite_env(spec).physics.model.ptr
+    return load_environment(spec).physics.model.ptr
 
 
 def background_bank(config: DRConfig, texture_size: int) -> BackgroundBank | None:

@@ -1,37 +1,69 @@
-"""The simulated tasks of TWIST: dm_control suite tasks with privileged state and physics state.
+"""The simulated tasks of TWIST: registered dm_control-style tasks with privileged state and
+physics state.
 
-Task names are ``<domain>-<task>`` with the paper's short names (``cup-catch`` is dm_control's
-``ball_in_cup``/``catch``). :class:`TaskEnv` adds action repeat, the flattened privileged state
-vector s_t, and a physics vector that restores the exact simulated instant; see ``datasets.md``
-for the layouts per task.
+A task is a registered :class:`TaskSpec`: the six DMC tasks of the paper are registered here,
+by dm_control suite domain and task (names ``<domain>-<task>`` with the paper's short names:
+``cup-catch`` is dm_control's ``ball_in_cup``/``catch``); a user registers their own from
+their own module with :func:`register_task`, giving a factory of a dm_control
+``control.Environment`` (any MJCF scene and a ``base.Task`` with its observation and reward).
+Every stage finds a task by name through :func:`task_spec`, which first imports the modules
+named in ``TWIST_TASK_MODULES`` and the ``twist.tasks`` entry points, so that a user's task is
+known in every process, the renderer's workers included. :class:`TaskEnv` adds action repeat,
+the flattened privileged state vector s_t, and a physics vector that restores the exact
+simulated instant; see ``datasets.md`` for the layouts per task.
 """
 
 from __future__ import annotations
 
 import copy
+import importlib
 import logging
-from dataclasses import dataclass
+import os
+import re
+import sys
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
-from twist_data.errors import ConfigError, PhysicsStateError, UnknownTaskError
+from twist_data.errors import (
+    ConfigError,
+    PhysicsStateError,
+    TaskRegistrationError,
+    UnknownTaskError,
+)
 
 log = logging.getLogger(__name__)
+
+#: What a task's name looks like: lower-case words joined by one hyphen (``cup-catch``).
+TASK_NAME = re.compile(r"^[a-z0-9_]+-[a-z0-9_]+$")
+#: Environment variable: comma-separated modules that register tasks when imported.
+TASK_MODULES_VARIABLE = "TWIST_TASK_MODULES"
+#: Entry-point group of installed packages' task modules (each entry point is imported).
+TASK_ENTRY_POINTS = "twist.tasks"
+#: The kinds of model element ``TaskSpec.model_fields`` may name, by a field's prefix.
+_OBJECT_KINDS = {"site": "mjOBJ_SITE", "geom": "mjOBJ_GEOM", "body": "mjOBJ_BODY"}
 
 
 @dataclass(frozen=True)
 class TaskSpec:
-    """How one twist task maps onto dm_control."""
+    """One twist task: where its dm_control environment comes from and what DR may touch."""
 
     name: str
-    """Stable twist name, e.g. ``cup-catch``."""
-    domain: str
-    """dm_control suite domain, e.g. ``ball_in_cup``."""
-    task: str
+    """Stable twist name, ``<words>-<words>``, e.g. ``cup-catch``."""
+    domain: str = ""
+    """dm_control suite domain, e.g. ``ball_in_cup`` (a suite task; empty with
+    ``environment``)."""
+    task: str = ""
     """dm_control suite task, e.g. ``catch``."""
+    environment: Callable[[], Any] | None = field(default=None, compare=False)
+    """A factory of the task's dm_control ``control.Environment`` (a user's task; None for a
+    suite task). It is called once per process; every episode's environment is a copy, seeded
+    through its task's ``random``."""
     camera: int = 0
-    """Camera id rendered (DreamerV2 uses camera 0 for these tasks)."""
+    """Camera id rendered (DreamerV2 uses camera 0 for the suite tasks)."""
     model_fields: tuple[tuple[str, str], ...] = ()
     """Model entries the task changes per episode and that show in renders, as (field, element):
     appended to the physics vector so that restoring it reproduces the picture."""
@@ -41,11 +73,31 @@ class TaskSpec:
     the reflection x -> -x, a symmetry of the task's dynamics. A read-out may average over it
     (``ReadOutStage.mirror``); empty where not declared."""
 
+    def __post_init__(self) -> None:
+        if not TASK_NAME.match(self.name):
+            raise TaskRegistrationError(f"a task's name is lower-case words joined by one "
+                                        f"hyphen, like 'cup-catch'; got {self.name!r}")
+        if (self.environment is None) == bool(self.domain and self.task):
+            return
+        raise TaskRegistrationError(
+            f"task {self.name!r} needs either an environment factory or a dm_control suite "
+            f"domain and task, not {'both' if self.environment is not None else 'neither'}")
 
-#: The six tasks of the paper's Table I.
-TASKS: dict[str, TaskSpec] = {
-    spec.name: spec
-    for spec in (
+    @property
+    def source(self) -> str:
+        """Where the task's environment comes from, in words."""
+        if self.environment is None:
+            return f"dm_control {self.domain}/{self.task}"
+        factory = self.environment
+        return f"{getattr(factory, '__module__', '?')}.{getattr(factory, '__qualname__', '?')}"
+
+
+_REGISTERED: dict[str, TaskSpec] = {}
+#: Every registered task by name, a read-only view that follows :func:`register_task`.
+TASKS: Mapping[str, TaskSpec] = MappingProxyType(_REGISTERED)
+
+# The six tasks of the paper's Table I.
+for _spec in (
         # position (cup x, cup z, ball x, ball z), velocity (the same four).
         TaskSpec("cup-catch", "ball_in_cup", "catch", mirror=(-1, 1, -1, 1, -1, 1, -1, 1)),
         # position (cart x, cos, sin of the pole's angle), velocity (cart, pole).
@@ -55,13 +107,99 @@ TASKS: dict[str, TaskSpec] = {
         TaskSpec("walker-walk", "walker", "walk"),
         # The turn target is moved and resized per episode in the model, not in qpos.
         TaskSpec("finger-turn_easy", "finger", "turn_easy",
-                 model_fields=(("site_pos", "target"), ("site_size", "target"))),
-    )
-}
+                 model_fields=(("site_pos", "target"), ("site_size", "target")))):
+    _REGISTERED[_spec.name] = _spec
 
 DEFAULT_TASK = "cartpole-balance"
 #: Simulator steps per agent step of DreamerV2 and TWIST on every DMC task.
 DEFAULT_ACTION_REPEAT = 2
+
+
+def register_task(spec: TaskSpec) -> TaskSpec:
+    """Register a task under ``spec.name`` for every command and the Gymnasium ids; returns
+    ``spec``. The environment is built once to check it: a state layout (a non-empty mapping
+    of observations), actions within [-1, 1], a rendered camera and model fields that exist,
+    a state mirror of the state's length, and at least one material DR recolours. A name taken
+    already, or a spec that fails a check, is refused in one sentence and nothing registers."""
+    if spec.name in _REGISTERED:
+        raise TaskRegistrationError(f"a task named {spec.name!r} is registered already "
+                                    f"({_REGISTERED[spec.name].source})")
+    _check_task(spec)
+    _REGISTERED[spec.name] = spec
+    gym_env = sys.modules.get("twist_sim.gym_env")
+    if gym_env is not None:
+        gym_env.register_environments()
+    return spec
+
+
+def _check_task(spec: TaskSpec) -> None:
+    import mujoco
+
+    from twist_sim.randomisation import COLOUR_GROUPS
+
+    try:
+        env = spec.environment()
+    except Exception as exc:  # a user's factory: any failure is the task's
+        raise TaskRegistrationError(f"task {spec.name!r}: its environment factory failed: "
+                                    f"{type(exc).__name__}: {exc}") from None
+    def refuse(problem: str) -> TaskRegistrationError:
+        return TaskRegistrationError(f"task {spec.name!r} {problem}")
+
+    for attribute in ("physics", "task", "reset", "step", "action_spec", "control_timestep"):
+        if not hasattr(env, attribute):
+            raise refuse(f"needs a dm_control control.Environment, got {type(env).__name__} "
+                         f"(no {attribute!r})")
+    observation = env.task.get_observation(env.physics)
+    if not isinstance(observation, Mapping) or not observation:
+        raise refuse("declares no state layout: its task's get_observation must return a "
+                     f"non-empty mapping of named arrays, got {observation!r}")
+    state_dim = sum(int(np.asarray(value).size) for value in observation.values())
+    if spec.mirror and len(spec.mirror) != state_dim:
+        raise refuse(f"declares a mirror of {len(spec.mirror)} signs for a state of "
+                     f"{state_dim} components")
+    action = env.action_spec()
+    low, high = np.broadcast_to(action.minimum, action.shape), np.broadcast_to(action.maximum,
+                                                                               action.shape)
+    if len(action.shape) != 1 or not (np.all(low >= -1) and np.all(high <= 1)):
+        raise refuse(f"must take a vector of actions within [-1, 1] (an actor's tanh range), "
+                     f"got shape {action.shape} within [{low.min()}, {high.max()}]")
+    model = env.physics.model.ptr
+    if not 0 <= spec.camera < model.ncam:
+        raise refuse(f"renders camera {spec.camera}, but its model has {model.ncam} cameras")
+    for field_name, element in spec.model_fields:
+        kind = _OBJECT_KINDS.get(field_name.split("_")[0])
+        if (kind is None or not hasattr(model, field_name)
+                or mujoco.mj_name2id(model, getattr(mujoco.mjtObj, kind), element) < 0):
+            raise refuse(f"names model field {field_name}[{element}], which its model lacks")
+    if all(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, name) < 0
+           for name in COLOUR_GROUPS):
+        raise refuse(f"has no material domain randomisation recolours: name at least one of "
+                     f"its materials {', '.join(COLOUR_GROUPS)}")
+
+
+_LOADED_MODULES = False
+
+
+def load_task_modules() -> None:
+    """Import the modules named in ``TWIST_TASK_MODULES`` and the ``twist.tasks`` entry points,
+    once per process: they register their tasks as they import."""
+    global _LOADED_MODULES
+    if _LOADED_MODULES:
+        return
+    _LOADED_MODULES = True
+    from importlib.metadata import entry_points
+
+    names = [n.strip() for n in os.environ.get(TASK_MODULES_VARIABLE, "").split(",") if n.strip()]
+    for name in names:
+        if name in sys.modules:
+            continue
+        try:
+            importlib.import_module(name)
+        except ImportError as exc:
+            raise TaskRegistrationError(f"task module {name!r} named in "
+                                        f"{TASK_MODULES_VARIABLE} does not import: {exc}") from None
+    for entry in entry_points(group=TASK_ENTRY_POINTS):
+        entry.load()
 
 
 def _full_physics() -> int:
@@ -79,16 +217,22 @@ def state_mirror(name: str) -> tuple[float, ...]:
 
     if name == SYNTH_TASK:
         return SYNTH_MIRROR
-    return tuple(float(v) for v in TASKS[name].mirror) if name in TASKS else ()
+    try:
+        return tuple(float(v) for v in task_spec(name).mirror)
+    except UnknownTaskError:
+        return ()
 
 
 def task_spec(name: str) -> TaskSpec:
-    """The spec of task ``name``; an unknown name raises listing the valid ones."""
+    """The spec of task ``name`` (the task modules imported first); an unknown name raises
+    listing the registered ones."""
+    if name not in _REGISTERED:
+        load_task_modules()
     try:
-        return TASKS[name]
+        return _REGISTERED[name]
     except KeyError:
         raise UnknownTaskError(
-            f"unknown task {name!r}; valid tasks are: {', '.join(sorted(TASKS))}"
+            f"unknown task {name!r}; registered tasks are: {', '.join(sorted(_REGISTERED))}"
         ) from None
 
 
@@ -96,26 +240,31 @@ def task_spec(name: str) -> TaskSpec:
 _PRISTINE: dict[str, Any] = {}
 
 
-def load_suite_env(spec: TaskSpec, seed: int = 0):
-    """dm_control's environment for ``spec``, without its model-compiler deprecation chatter.
+def load_environment(spec: TaskSpec, seed: int = 0):
+    """The task's dm_control environment (a suite task's without its model-compiler
+    deprecation chatter).
 
-    The first call per task compiles the model from its XML (~0.1 s); later calls deep-copy
-    a never-stepped environment (~0.02 s), which a batched evaluation's N episode slots pay
-    N times. The copy has its own model and data and gets the task's RandomState(``seed``),
-    as ``suite.load`` would give it: a copy equals a fresh load (tested)."""
+    The first call per task builds it (a suite task compiles its XML, ~0.1 s); later calls
+    deep-copy a never-stepped environment (~0.02 s), which a batched evaluation's N episode
+    slots pay N times. The copy has its own model and data and gets the task's
+    RandomState(``seed``), as ``suite.load`` would give it: a copy equals a fresh load
+    (tested)."""
     env = _PRISTINE.get(spec.name)
     if env is None:
-        from dm_control import suite
-
         absl = logging.getLogger("absl")
         level = absl.level
         # cheetah.xml uses a deprecated compiler attribute; MuJoCo warns on every load.
         absl.setLevel(logging.ERROR)
         try:
-            env = _PRISTINE[spec.name] = suite.load(spec.domain, spec.task,
-                                                    task_kwargs={"random": 0})
+            if spec.environment is not None:
+                env = spec.environment()
+            else:
+                from dm_control import suite
+
+                env = suite.load(spec.domain, spec.task, task_kwargs={"random": 0})
         finally:
             absl.setLevel(level)
+        _PRISTINE[spec.name] = env
     env = copy.deepcopy(env)
     env.task._random = np.random.RandomState(seed)  # what suite.load's ``random`` sets
     return env
@@ -168,7 +317,7 @@ class TaskEnv:
         self.max_steps = max_steps
         self._steps = 0
         self.spec = task_spec(task)
-        self._env = load_suite_env(self.spec, seed)
+        self._env = load_environment(self.spec, seed)
         self.action_repeat = action_repeat
         self.physics = self._env.physics
         self.model = self.physics.model.ptr
@@ -185,7 +334,10 @@ class TaskEnv:
         self._core_dim = mujoco.mj_stateSize(self.model, _full_physics())
         self._rows = model_rows(self.model, self.spec)
         # Asked on every step; dm_control builds a new spec per call (~0.2 ms).
-        self._action_dim = int(self._env.action_spec().shape[0])
+        action_spec = self._env.action_spec()
+        self._action_dim = int(action_spec.shape[0])
+        self._action_low = np.broadcast_to(action_spec.minimum, action_spec.shape) - 1e-6
+        self._action_high = np.broadcast_to(action_spec.maximum, action_spec.shape) + 1e-6
         self._done = True
 
     # -- sizes -------------------------------------------------------------------------------
@@ -247,6 +399,9 @@ class TaskEnv:
         action = np.asarray(action, np.float64)
         if action.shape != (self.action_dim,):
             raise ConfigError(f"action must have shape ({self.action_dim},), got {action.shape}")
+        if not (np.all(action >= self._action_low) and np.all(action <= self._action_high)):
+            raise ConfigError(f"{self.name}'s actions lie within [{self._action_low.min():.3g}, "
+                              f"{self._action_high.max():.3g}]; got {action.tolist()}")
         reward = 0.0
         for _ in range(self.action_repeat):
             time_step = self._env.step(action)
@@ -320,8 +475,8 @@ def model_rows(model, spec: TaskSpec) -> list[np.ndarray]:
     """Writable views of the model entries ``spec.model_fields`` names, looked up once."""
     import mujoco
 
-    kinds = {"site": mujoco.mjtObj.mjOBJ_SITE, "geom": mujoco.mjtObj.mjOBJ_GEOM,
-             "body": mujoco.mjtObj.mjOBJ_BODY}
-    return [getattr(model, field_name)[
-                mujoco.mj_name2id(model, kinds[field_name.split("_")[0]], element)]
-            for field_name, element in spec.model_fields]
+    rows = []
+    for field_name, element in spec.model_fields:
+        kind = getattr(mujoco.mjtObj, _OBJECT_KINDS[field_name.split("_")[0]])
+        rows.append(getattr(model, field_name)[mujoco.mj_name2id(model, kind, element)])
+    return rows
