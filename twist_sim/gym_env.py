@@ -2,8 +2,8 @@
 
 ``gymnasium.make("twist/cartpole-balance-heldout-v0")`` (after ``import twist_sim.gym_env``,
 or as ``gymnasium.make("twist_sim.gym_env:twist/cartpole-balance-heldout-v0")``) gives an
-environment for every registered task (:data:`~twist_sim.tasks.TASKS`, a user's too) and DR preset of
-:data:`~twist_sim.randomisation.DR_PRESETS`: observations are a dict of the rendered
+environment for every registered task (:data:`~twist_sim.tasks.TASKS`, a user's too) and
+DR preset of :data:`~twist_sim.randomisation.DR_PRESETS`: observations are a dict of the rendered
 view (``image``, uint8 [H, W, 3]) and/or the privileged state (``state``, float32 [S]);
 actions are in [-1, 1].
 
