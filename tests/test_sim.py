@@ -10,7 +10,9 @@ from twist_sim.tasks import TASKS, Dynamics, TaskEnv, task_spec
 
 # Observation sizes of the DMC tasks as DreamerV2/DrQ report them for state-based agents.
 KNOWN_STATE_DIMS = {"cup-catch": 8, "cartpole-balance": 5, "cheetah-run": 17, "hopper-stand": 15,
-                    "walker-walk": 24, "finger-turn_easy": 12}
+                    "walker-walk": 24, "finger-turn_easy": 12,
+                    # fingertips, block and goal (x, y) or opening, with their velocities
+                    "panda-push": 14, "panda-lift": 14}
 
 
 @pytest.mark.parametrize("task", sorted(TASKS))
@@ -22,8 +24,10 @@ def test_state_and_physics_dimensions(task: str) -> None:
     spec_dims = sum(int(np.prod(s.shape)) for s in env._env.observation_spec().values())
     assert env.state_dim == spec_dims
     m = env.model
-    extra = 6 if task == "finger-turn_easy" else 0  # target site position and size
-    assert step.physics.shape == (1 + m.nq + m.nv + m.na + extra,) == (env.physics_dim,)
+    # finger's target site position and size; panda-push's goal position
+    extra = {"finger-turn_easy": 6, "panda-push": 3}.get(task, 0)
+    mocap = 7 * m.nmocap  # the manipulation tasks' gripper target, position and quaternion
+    assert step.physics.shape == (1 + m.nq + m.nv + m.na + mocap + extra,) == (env.physics_dim,)
     assert sum(n for _, n in env.physics_layout) == env.physics_dim
     assert env.action_dim == env._env.action_spec().shape[0]
 

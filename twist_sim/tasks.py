@@ -16,6 +16,7 @@ simulated instant; see ``datasets.md`` for the layouts per task.
 from __future__ import annotations
 
 import copy
+import functools
 import importlib
 import logging
 import os
@@ -96,7 +97,13 @@ _REGISTERED: dict[str, TaskSpec] = {}
 #: Every registered task by name, a read-only view that follows :func:`register_task`.
 TASKS: Mapping[str, TaskSpec] = MappingProxyType(_REGISTERED)
 
-# The six tasks of the paper's Table I.
+def _panda(lift: bool) -> Any:
+    from twist_sim.panda import environment
+
+    return environment(lift)
+
+
+# The six tasks of the paper's Table I, and its two manipulation tasks.
 for _spec in (
         # position (cup x, cup z, ball x, ball z), velocity (the same four).
         TaskSpec("cup-catch", "ball_in_cup", "catch", mirror=(-1, 1, -1, 1, -1, 1, -1, 1)),
@@ -107,7 +114,11 @@ for _spec in (
         TaskSpec("walker-walk", "walker", "walk"),
         # The turn target is moved and resized per episode in the model, not in qpos.
         TaskSpec("finger-turn_easy", "finger", "turn_easy",
-                 model_fields=(("site_pos", "target"), ("site_size", "target")))):
+                 model_fields=(("site_pos", "target"), ("site_size", "target"))),
+        # The paper's manipulation tasks (twist_sim.panda); the goal marker moves per episode.
+        TaskSpec("panda-push", environment=functools.partial(_panda, False),
+                 model_fields=(("site_pos", "goal"),)),
+        TaskSpec("panda-lift", environment=functools.partial(_panda, True))):
     _REGISTERED[_spec.name] = _spec
 
 DEFAULT_TASK = "cartpole-balance"
@@ -202,11 +213,16 @@ def load_task_modules() -> None:
         entry.load()
 
 
-def _full_physics() -> int:
-    """mj_getState signature of the physics vector: time, qpos, qvel, act, mocap, plugin state."""
+def physics_signature(model) -> int:
+    """mj_getState signature of the physics vector: time, qpos, qvel, act and plugin state,
+    and a mocap body's pose where the model has one (the manipulation tasks' gripper target;
+    MuJoCo keeps it apart from the full physics state, and the suite tasks have none)."""
     import mujoco
 
-    return int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    signature = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    if model.nmocap:
+        signature |= int(mujoco.mjtState.mjSTATE_MOCAP_POS | mujoco.mjtState.mjSTATE_MOCAP_QUAT)
+    return signature
 
 
 def state_mirror(name: str) -> tuple[float, ...]:
@@ -331,7 +347,7 @@ class TaskEnv:
         )
         import mujoco
 
-        self._core_dim = mujoco.mj_stateSize(self.model, _full_physics())
+        self._core_dim = mujoco.mj_stateSize(self.model, physics_signature(self.model))
         self._rows = model_rows(self.model, self.spec)
         # Asked on every step; dm_control builds a new spec per call (~0.2 ms).
         action_spec = self._env.action_spec()
@@ -441,7 +457,7 @@ def physics_vector(model, data, model_values: list[np.ndarray]) -> np.ndarray:
     """Full physics state of ``data`` followed by the task's per-episode model entries."""
     import mujoco
 
-    sig = _full_physics()
+    sig = physics_signature(model)
     core = np.empty(mujoco.mj_stateSize(model, sig), np.float64)
     mujoco.mj_getState(model, data, core, sig)
     return np.concatenate([core, *[np.asarray(v, np.float64).ravel() for v in model_values]])
@@ -452,7 +468,7 @@ def restore_physics(model, data, physics: np.ndarray, rows: list[np.ndarray], ta
     :func:`model_rows`) and recompute positions (``mj_forward``)."""
     import mujoco
 
-    sig = _full_physics()
+    sig = physics_signature(model)
     core = mujoco.mj_stateSize(model, sig)
     physics = np.asarray(physics, np.float64)
     expected = core + sum(row.size for row in rows)

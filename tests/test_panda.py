@@ -1,0 +1,127 @@
+"""The manipulation tasks: the gripper moves as its action says, a scripted grasp lifts the
+block and a scripted push puts it on the goal, and every instant restores exactly."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("dm_control")
+
+from twist_sim import panda
+from twist_sim.tasks import TASKS, TaskEnv
+
+REPEAT = 4  # the quick preset's action repeat, for which the tasks are made
+
+
+def _steer(env: TaskEnv, step, target: np.ndarray, steps: int, grip: float | None = None):
+    """Move the fingertips towards ``target`` (a proportional controller, clipped)."""
+    reward = 0.0
+    for _ in range(steps):
+        action = np.clip((target - step.state[:3]) * 50, -1, 1)
+        step = env.step(action if grip is None else np.r_[action, grip])
+        reward += step.reward
+    return step, reward
+
+
+def test_both_tasks_are_registered_with_their_layouts() -> None:
+    assert {"panda-push", "panda-lift"} <= set(TASKS)
+    push, lift = TaskEnv("panda-push", REPEAT), TaskEnv("panda-lift", REPEAT)
+    # push: fingertips, block, goal (x, y); lift: fingertips, opening, block.
+    assert push.state_layout == (("position", 8), ("velocity", 6)) and push.action_dim == 3
+    assert lift.state_layout == (("position", 7), ("velocity", 7)) and lift.action_dim == 4
+    # 150 agent steps at action repeat 4, as the paper's episodes.
+    steps = 0
+    step = push.reset(seed=0)
+    while not step.is_last:
+        step, steps = push.step(np.zeros(3)), steps + 1
+    assert steps == panda.EPISODE_STEPS // REPEAT == 150
+
+
+def test_the_gripper_starts_at_its_start_and_moves_two_centimetres_per_agent_step() -> None:
+    env = TaskEnv("panda-push", REPEAT)
+    first = env.reset(seed=0)
+    np.testing.assert_allclose(first.state[:3], panda.START, atol=2e-3)
+    blocks = {tuple(TaskEnv("panda-push", REPEAT).reset(seed=s).state[3:5]) for s in range(4)}
+    assert len(blocks) == 4  # the block's place is the episode's draw
+    step = first
+    for _ in range(5):
+        step = env.step(np.array([1.0, 0.0, 0.0]))
+    for _ in range(3):  # let the arm catch up with its target
+        step = env.step(np.zeros(3))
+    moved = step.state[:3] - first.state[:3]
+    assert moved[0] == pytest.approx(5 * REPEAT * panda.MAX_DELTA, abs=0.01)
+    assert abs(moved[1]) < 0.01 and abs(moved[2]) < 0.01
+
+
+def test_the_workspace_keeps_the_gripper_above_the_table() -> None:
+    env = TaskEnv("panda-push", REPEAT)
+    step = env.reset(seed=0)
+    for _ in range(40):
+        step = env.step(np.array([0.0, 0.0, -1.0]))
+    assert step.state[2] == pytest.approx(panda.WORKSPACE[2, 0], abs=0.01)
+
+
+def test_a_scripted_grasp_lifts_the_block_and_earns_the_lift_reward() -> None:
+    env = TaskEnv("panda-lift", REPEAT)
+    step = env.reset(seed=1)
+    block = step.state[4:7].copy()
+    step, _ = _steer(env, step, [*block[:2], block[2] + 0.08], 25, grip=1.0)
+    assert step.reward / REPEAT < 0.2  # reached above it, not yet grasped
+    step, _ = _steer(env, step, block, 15, grip=1.0)
+    step, _ = _steer(env, step, block, 10, grip=-1.0)
+    step, _ = _steer(env, step, [*block[:2], block[2] + 0.2], 40, grip=-1.0)
+    height = step.state[6] - panda.BLOCK_HALF
+    assert height >= panda.LIFT_HEIGHT
+    assert step.state[3] == pytest.approx(panda.BLOCK_HALF, abs=0.005)  # fingers on its faces
+    assert step.reward / REPEAT > 0.9  # rewards add up over the repeated control steps
+
+
+def test_a_scripted_push_puts_the_block_on_the_goal() -> None:
+    env = TaskEnv("panda-push", REPEAT)
+    step = env.reset(seed=1)
+    block, goal = step.state[3:5].copy(), step.state[6:8].copy()
+    start_reward = step.reward
+    way = (goal - block) / np.linalg.norm(goal - block)
+    behind = np.r_[block - 0.06 * way, panda.BLOCK_HALF]
+    step, _ = _steer(env, step, np.r_[behind[:2], 0.1], 30)
+    step, _ = _steer(env, step, behind, 15)
+    step, _ = _steer(env, step, np.r_[goal - 0.035 * way, panda.BLOCK_HALF], 60)
+    assert np.linalg.norm(step.state[3:5] - goal) < panda.PUSH_TOLERANCE
+    assert step.reward / REPEAT > 0.9 > start_reward / REPEAT
+
+
+def test_an_instant_restores_exactly_and_steps_on_alike() -> None:
+    env = TaskEnv("panda-lift", REPEAT)
+    env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        env.step(rng.uniform(-1, 1, 4))
+    saved = env.physics_state()
+    actions = rng.uniform(-1, 1, (5, 4))
+    ahead = [env.step(a).state for a in actions]
+    other = TaskEnv("panda-lift", REPEAT, seed=9)
+    other.reset(seed=4)
+    other.set_physics_state(saved)
+    np.testing.assert_array_equal(other.physics_state(), saved)
+    # Stepped on, they agree to the contact solver's tolerance: its warm start is not part
+    # of the instant (nor of any suite task's).
+    np.testing.assert_allclose(np.stack([other.step(a).state for a in actions]),
+                               np.stack(ahead), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("task", ["panda-push", "panda-lift"])
+def test_a_tiny_collection_rerenders_bit_exactly(task: str, tmp_path, gl: None) -> None:
+    from twist_data.reader import open_dataset
+    from twist_data.verify import verify_dataset
+    from twist_models.stages.collect import collect, collect_preset
+    from twist_sim.rerender import check_reproduction
+
+    collect(tmp_path, collect_preset("tiny", task=task, action_repeat=REPEAT, frames=200))
+    assert verify_dataset(tmp_path).ok
+    data = open_dataset(tmp_path)
+    assert data.spec.task == task and data.spec.physics_dim == TaskEnv(task).physics_dim
+    # Under per-step DR the block is recoloured: its material's colour differs step to step.
+    colour = data.column("dr/colour")
+    assert not np.array_equal(colour[0], colour[1])
+    assert check_reproduction(data, n_steps=20) == []

@@ -1,0 +1,296 @@
+"""The paper's manipulation tasks: a Franka Panda arm pushes a block to a goal marker
+(``panda-push``) or grasps it and lifts it 10 cm (``panda-lift``).
+
+The arm has the Panda's kinematics (its seven joints' placements, axes and ranges, as MuJoCo
+Menagerie's ``franka_emika_panda`` model gives them) with its links drawn as capsules and boxes
+rather than meshes: at 64x64 pixels a mesh adds nothing a policy could see, and the package
+ships no asset files. Actions are Cartesian deltas of the gripper, at most 2 cm per agent step
+at the ``quick`` preset's action repeat of 4 (0.5 cm per control step of 25 ms), plus, for
+lifting, the gripper's opening; the hand follows a mocap target through a weld, its
+orientation fixed pointing down, and the arm's joints follow the hand (gravity compensated,
+held softly towards a ready posture so that the redundant elbow stays put). Episodes last 600
+control steps: 150 agent steps at action repeat 4, as the paper's.
+
+Rewards are dense and computed from privileged state, each term a dm_control ``tolerance``
+in [0, 1]: reaching the block, then the block's distance to the goal (push) or the block's
+height with both fingers on it (lift). The materials are named as dm_control's, so that domain
+randomisation recolours the robot (``self``), its hand and fingers (``effector``), the block
+(``decoration``), the goal marker (``target``) and the table (``grid``).
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+
+import numpy as np
+
+#: Seconds per control step, and MuJoCo's time step within it.
+CONTROL_STEP = 0.025
+PHYSICS_STEP = 0.005
+#: Control steps per episode: 150 agent steps at action repeat 4.
+EPISODE_STEPS = 600
+#: The gripper's largest move per control step (2 cm per agent step at action repeat 4).
+MAX_DELTA = 0.005
+#: Where the gripper's fingertips may go: x, y, z bounds in metres (the table's top is z = 0).
+WORKSPACE = np.array([[-0.25, 0.25], [-0.25, 0.25], [0.005, 0.3]])
+#: The gripper's start: above the table's centre.
+START = np.array([0.0, 0.0, 0.15])
+#: Half the block's side, and how far below the hand's frame its fingertips are.
+BLOCK_HALF = 0.025
+FINGERTIPS = 0.105
+#: The Panda's ready posture (its joints 1-7, radians), towards which the arm is held.
+READY = (0.0, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785)
+#: Success: the block within this distance of the goal (push), or its bottom this high above
+#: the table (lift), at the episode's end.
+PUSH_TOLERANCE = 0.05
+LIFT_HEIGHT = 0.10
+
+_ARM = """
+<body name="link0" pos="-0.55 0 0" childclass="arm" gravcomp="1">
+  <geom type="cylinder" size=".07 .07" pos="0 0 .07"/>
+  <body name="link1" gravcomp="1" pos="0 0 0.333">
+    <joint name="joint1" springref="{q1}" range="-2.8973 2.8973"/>
+    <geom type="capsule" fromto="0 0 -.25 0 0 0" size=".06"/>
+    <body name="link2" gravcomp="1" quat="1 -1 0 0">
+      <joint name="joint2" springref="{q2}" range="-1.7628 1.7628"/>
+      <geom type="capsule" fromto="0 0 0 0 -.316 0" size=".06"/>
+      <body name="link3" gravcomp="1" pos="0 -0.316 0" quat="1 1 0 0">
+        <joint name="joint3" springref="{q3}" range="-2.8973 2.8973"/>
+        <geom type="capsule" fromto="0 0 0 .0825 0 0" size=".055"/>
+        <body name="link4" gravcomp="1" pos="0.0825 0 0" quat="1 1 0 0">
+          <joint name="joint4" springref="{q4}" range="-3.0718 -0.0698"/>
+          <geom type="capsule" fromto="0 0 0 -.0825 .384 0" size=".055"/>
+          <body name="link5" gravcomp="1" pos="-0.0825 0.384 0" quat="1 -1 0 0">
+            <joint name="joint5" springref="{q5}" range="-2.8973 2.8973"/>
+            <geom type="capsule" fromto="0 0 -.12 0 0 0" size=".05"/>
+            <body name="link6" gravcomp="1" quat="1 1 0 0">
+              <joint name="joint6" springref="{q6}" range="-0.0175 3.7525"/>
+              <geom type="capsule" fromto="0 0 0 .088 0 0" size=".045"/>
+              <body name="link7" gravcomp="1" pos="0.088 0 0" quat="1 1 0 0">
+                <joint name="joint7" springref="{q7}" range="-2.8973 2.8973"/>
+                <geom type="cylinder" fromto="0 0 0 0 0 .1" size=".045"/>
+                <body name="hand" gravcomp="1" pos="0 0 0.107" quat="0.9238795 0 0 -0.3826834">
+                  <geom type="box" size=".025 .1 .03" pos="0 0 .03" material="effector"
+                        class="touch"/>
+                  <site name="fingertips" pos="0 0 {fingertips}" size=".005"/>
+                  <body name="left_finger" gravcomp="1" pos="0 0 0.0584">
+                    <joint name="finger1" type="slide" axis="0 1 0" range="0 0.04"
+                           damping="10" stiffness="0"/>
+                    <geom type="box" size=".01 .01 .025" pos="0 .01 .025" material="effector"
+                          class="touch" friction="2 .01 .001"/>
+                  </body>
+                  <body name="right_finger" gravcomp="1" pos="0 0 0.0584" quat="0 0 0 1">
+                    <joint name="finger2" type="slide" axis="0 1 0" range="0 0.04"
+                           damping="10" stiffness="0"/>
+                    <geom type="box" size=".01 .01 .025" pos="0 .01 .025" material="effector"
+                          class="touch" friction="2 .01 .001"/>
+                  </body>
+                </body>
+              </body>
+            </body>
+          </body>
+        </body>
+      </body>
+    </body>
+  </body>
+</body>
+"""
+
+_GOAL = '<site name="goal" type="cylinder" pos=".1 .1 .0005" size=".03 .0005" material="target"/>'
+
+_SCENE = """
+<mujoco model="{name}">
+  <compiler angle="radian"/>
+  <option timestep="{physics_step}"/>
+  <visual><global offwidth="256" offheight="256"/></visual>
+  <default>
+    <default class="arm">
+      <joint axis="0 0 1" damping="20" stiffness="20" armature="0.1"/>
+      <geom material="self" contype="0" conaffinity="0" mass="1"/>
+      <default class="touch"><geom contype="1" conaffinity="1" mass=".3"/></default>
+    </default>
+  </default>
+  <asset>
+    <material name="self" rgba=".92 .92 .93 1"/>
+    <material name="effector" rgba=".25 .25 .25 1"/>
+    <material name="decoration" rgba=".95 .8 .1 1"/>
+    <material name="target" rgba=".9 .1 .1 1"/>
+    <material name="grid" rgba=".55 .45 .35 1"/>
+  </asset>
+  <worldbody>
+    <light name="top" pos="0 0 1.5" dir="0 0 -1" diffuse=".7 .7 .7"/>
+    <light name="front" pos=".8 0 .8" dir="-1 0 -1" diffuse=".3 .3 .3"/>
+    <camera name="front" pos=".78 0 .66" xyaxes="0 1 0 -.6 0 .8" fovy="45"/>
+    <geom name="table" type="box" pos="0 0 -.02" size=".7 .5 .02" material="grid"
+          friction="1 .005 .0001"/>
+    {arm}
+    <body name="block" pos="0 0 {block_half}">
+      <freejoint name="block"/>
+      <geom name="block" type="box" size="{block_half} {block_half} {block_half}" mass=".1"
+            material="decoration" friction="1 .005 .0001"/>
+    </body>
+    {goal}
+    <body name="target" mocap="true" pos="0 0 .3"/>
+  </worldbody>
+  <equality>
+    <weld body1="target" body2="hand" relpose="0 0 0 1 0 0 0" solref=".01 1"/>
+    <joint joint1="finger1" joint2="finger2"/>
+  </equality>
+  <actuator>
+    <position name="gripper" joint="finger1" kp="300" ctrlrange="0 0.04"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def scene_xml(lift: bool) -> str:
+    """The MJCF of one task's scene: the same arm, table and block; the goal marker shown
+    only for pushing."""
+    ready = {f"q{i}": q for i, q in enumerate(READY, 1)}
+    goal = "" if lift else _GOAL
+    return _SCENE.format(name="panda-lift" if lift else "panda-push", physics_step=PHYSICS_STEP,
+                         arm=_ARM.format(fingertips=FINGERTIPS, **ready), block_half=BLOCK_HALF,
+                         goal=goal)
+
+
+def _tolerance(distance: float, margin: float) -> float:
+    """1 at zero distance, falling smoothly to 0.1 at ``margin`` (dm_control's ``tolerance``
+    with a gaussian sigmoid)."""
+    from dm_control.utils import rewards
+
+    return float(rewards.tolerance(distance, bounds=(0.0, 0.0), margin=margin))
+
+
+@functools.cache
+def _task_class():
+    """The dm_control task class and environment factory, built on first use so that importing
+    this module needs no dm_control."""
+    from dm_control.rl import control
+    from dm_control.suite import base
+    from dm_env import specs
+
+    class PandaTask(base.Task):
+        def __init__(self, lift: bool, random: int | np.random.RandomState | None = None):
+            super().__init__(random=random)
+            self.lift = lift
+
+        def action_spec(self, physics):
+            return specs.BoundedArray((4 if self.lift else 3,), np.float64, -1.0, 1.0,
+                                      name="gripper move" + (", opening" if self.lift else ""))
+
+        def initialize_episode(self, physics):
+            ready = _ready_posture(self.lift)
+            physics.named.data.qpos[[f"joint{i}" for i in range(1, 8)]] = ready.arm
+            physics.data.mocap_pos[0] = ready.target_pos
+            physics.data.mocap_quat[0] = ready.target_quat
+            side = self.random.uniform(-0.15, 0.15, size=2)
+            block = np.array([side[0] * 0.8, side[1], BLOCK_HALF])
+            physics.named.data.qpos["block"][:3] = block
+            physics.named.data.qpos["block"][3:] = (1.0, 0.0, 0.0, 0.0)
+            if not self.lift:
+                angle = self.random.uniform(-np.pi, np.pi)
+                distance = self.random.uniform(0.1, 0.2)
+                goal = np.clip(block[:2] + distance * np.array([np.cos(angle), np.sin(angle)]),
+                               -0.2, 0.2)
+                physics.named.model.site_pos["goal"][:2] = goal
+            physics.data.ctrl[0] = 0.0 if not self.lift else 0.04
+
+        def before_step(self, action, physics):
+            action = np.asarray(action, np.float64)
+            target = physics.data.mocap_pos[0]
+            grip = target[2] - FINGERTIPS
+            moved = np.clip(np.array([target[0], target[1], grip]) + MAX_DELTA * action[:3],
+                            WORKSPACE[:, 0], WORKSPACE[:, 1])
+            physics.data.mocap_pos[0] = (moved[0], moved[1], moved[2] + FINGERTIPS)
+            if self.lift:
+                physics.data.ctrl[0] = 0.02 * (1.0 + action[3])
+
+        def get_observation(self, physics):
+            grip = physics.named.data.site_xpos["fingertips"].copy()
+            block = physics.named.data.qpos["block"][:3].copy()
+            position = [grip, block]
+            velocity = [_site_velocity(physics), physics.named.data.qvel["block"][:3].copy()]
+            if self.lift:
+                position.insert(1, physics.named.data.qpos["finger1"].copy())
+                velocity.insert(1, physics.named.data.qvel["finger1"].copy())
+            else:
+                position.append(physics.named.model.site_pos["goal"][:2].copy())
+            return collections.OrderedDict(position=np.concatenate(position),
+                                           velocity=np.concatenate(velocity))
+
+        def get_reward(self, physics):
+            grip = physics.named.data.site_xpos["fingertips"]
+            block = physics.named.data.xpos["block"]
+            reach = _tolerance(float(np.linalg.norm(grip - block)), 0.2)
+            if not self.lift:
+                goal = physics.named.model.site_pos["goal"][:2]
+                placed = _tolerance(float(np.linalg.norm(block[:2] - goal)), 0.2)
+                return 0.3 * reach + 0.7 * placed
+            grasped = float(_fingers_touch(physics))
+            height = block[2] - BLOCK_HALF
+            lifted = _tolerance(max(LIFT_HEIGHT - height, 0.0), LIFT_HEIGHT)
+            return 0.2 * reach + 0.3 * grasped + 0.5 * grasped * lifted
+
+    def environment(lift: bool):
+        from dm_control import mujoco
+
+        physics = mujoco.Physics.from_xml_string(scene_xml(lift))
+        return control.Environment(physics, PandaTask(lift, random=0),
+                                   time_limit=EPISODE_STEPS * CONTROL_STEP,
+                                   control_timestep=CONTROL_STEP)
+
+    return PandaTask, environment
+
+
+def _site_velocity(physics) -> np.ndarray:
+    import mujoco
+
+    velocity = np.zeros(6)
+    site = physics.model.name2id("fingertips", "site")
+    mujoco.mj_objectVelocity(physics.model.ptr, physics.data.ptr, mujoco.mjtObj.mjOBJ_SITE,
+                             site, velocity, 0)
+    return velocity[3:].copy()
+
+
+def _fingers_touch(physics) -> bool:
+    """Whether both fingers touch the block."""
+    block = physics.model.name2id("block", "geom")
+    touching = set()
+    for contact in physics.data.contact:
+        pair = {int(contact.geom1), int(contact.geom2)}
+        if block in pair:
+            other = (pair - {block}).pop() if len(pair) > 1 else block
+            touching.add(physics.model.body(physics.model.geom_bodyid[other]).name)
+    return {"left_finger", "right_finger"} <= touching
+
+
+class _Ready(collections.namedtuple("_Ready", "arm target_pos target_quat")):
+    """The arm's joints, and the mocap target's pose, with the gripper at :data:`START`."""
+
+
+@functools.cache
+def _ready_posture(lift: bool) -> _Ready:
+    """Settle the arm once from its ready posture onto the target at :data:`START` (the
+    hand pointing down): every episode starts from this instant."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_string(scene_xml(lift))
+    data = mujoco.MjData(model)
+    arm = [model.joint(f"joint{i}").qposadr[0] for i in range(1, 8)]
+    data.qpos[arm] = READY
+    mujoco.mj_forward(model, data)
+    # The hand's orientation in the ready posture, which points it straight down
+    # (q2 - q4 - q6 = 0), is the one the target holds.
+    quat = data.xquat[model.body("hand").id].copy()
+    data.mocap_pos[0] = (*START[:2], START[2] + FINGERTIPS)
+    data.mocap_quat[0] = quat
+    for _ in range(1500):
+        mujoco.mj_step(model, data)
+    return _Ready(tuple(float(q) for q in data.qpos[arm]), data.mocap_pos[0].copy(),
+                  quat.copy())
+
+
+def environment(lift: bool):
+    """A dm_control ``control.Environment`` of ``panda-lift`` (``lift``) or ``panda-push``."""
+    return _task_class()[1](lift)
