@@ -237,9 +237,8 @@ class StateReadOut(nn.Module):
     def _leaned(self, cos: torch.Tensor, sin: torch.Tensor, c: int, s: int
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         # A squared-error read-out shrinks a lean it sees faintly towards the upright D is full
-        # of (closed-loop slopes 0.22-0.92 on held-out scenes), and the teacher's actor loses
-        # the pole when the lean it is handed is too small (the oracle reading 0.7 of its
-        # angle: 654) far sooner than when too large (2x: 982). So the reading is handed on
+        # of, and the teacher's actor loses the pole far sooner when the lean it is handed is
+        # too small than when too large. So the reading is handed on
         # `lean` times further from D's median angle: d + (lean - 1) sin d has slope `lean`
         # at d = 0, is monotone for lean < 2 and leaves a fallen pole (d = pi) where it is
         # (docs/findings.md, "Does reading the lean larger hold the lost scenes?"). An

@@ -638,10 +638,9 @@ class Distiller:
         return self.deadline is not None and time.perf_counter() >= self.deadline
 
     def _bundle(self, path: Path) -> Path:
-        # Every snapshot is deployable too: the return need not rise with the updates (it fell
-        # from 559 to 403 between 800 and 2,000 in one run while the latents kept improving;
-        # docs/findings.md, more updates), so the update count is worth choosing
-        # by evaluating the snapshots on episodes other than the reported ones.
+        # Every snapshot is deployable too: the return need not rise with the updates while
+        # the latents improve (docs/findings.md, "TWIST's objective, long"), so the update
+        # count is worth choosing by evaluating the snapshots on other episodes.
         if self.writes:
             info = {**self.data.spec.image_agent_info(), "dataset": str(self.dataset_path),
                     "teacher": str(self.teacher_path), "student_updates": self.updates,
