@@ -125,3 +125,44 @@ def test_a_tiny_collection_rerenders_bit_exactly(task: str, tmp_path, gl: None) 
     colour = data.column("dr/colour")
     assert not np.array_equal(colour[0], colour[1])
     assert check_reproduction(data, n_steps=20) == []
+
+
+class ScriptedPush:
+    """Above the block's far side from the goal, down, then through to the goal: a policy of
+    the privileged state, as `twist-eval --agent module:function` takes one."""
+
+    observe = ("state",)
+    task = "panda-push"
+
+    def reset(self) -> None:
+        self.steps, self.plan = 0, None
+
+    def __call__(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        state = observation["state"]
+        if self.plan is None:
+            block, goal = state[3:5], state[6:8]
+            way = (goal - block) / np.linalg.norm(goal - block)
+            behind = block - 0.06 * way
+            self.plan = [(np.r_[behind, 0.1], 30), (np.r_[behind, panda.BLOCK_HALF], 15),
+                         (np.r_[goal - 0.035 * way, panda.BLOCK_HALF], 10**6)]
+        self.steps += 1
+        ends = np.cumsum([steps for _, steps in self.plan])
+        target = self.plan[int(np.searchsorted(ends, self.steps))][0]
+        return np.clip((target - state[:3]) * 50, -1, 1)
+
+
+def test_evaluation_reports_the_success_rate_beside_the_return(tmp_path) -> None:
+    import pandas as pd
+
+    from twist_models.acting import PolicyAgent
+    from twist_models.stages.evaluation import EvalConfig, run_evaluation
+
+    script = ScriptedPush()
+    agents = {"script": PolicyAgent(script, script.observe, script.task), "zero": "zero"}
+    config = EvalConfig(task="panda-push", dr="none", episodes=2, action_repeat=REPEAT)
+    summary = run_evaluation(agents, config, [0], tmp_path)
+    table = pd.read_csv(tmp_path / "episodes.csv")
+    assert table.loc[table["agent"] == "script", "success"].tolist() == [1, 1]
+    assert summary["agents"]["script"]["success_rate"] == 1.0
+    # Doing nothing leaves the block where it started, 10-20 cm from the goal.
+    assert summary["agents"]["zero"]["success_rate"] == 0.0

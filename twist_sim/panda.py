@@ -291,6 +291,15 @@ def _ready_posture(lift: bool) -> _Ready:
                   quat.copy())
 
 
+def succeeded(lift: bool, state: np.ndarray) -> bool:
+    """Whether an episode ending in privileged state ``state`` [14] succeeded: the block's
+    bottom at least :data:`LIFT_HEIGHT` above the table (lift), or its centre within
+    :data:`PUSH_TOLERANCE` of the goal (push)."""
+    if lift:
+        return bool(state[6] - BLOCK_HALF >= LIFT_HEIGHT)
+    return bool(np.linalg.norm(state[3:5] - state[6:8]) < PUSH_TOLERANCE)
+
+
 def environment(lift: bool):
     """A dm_control ``control.Environment`` of ``panda-lift`` (``lift``) or ``panda-push``."""
     return _task_class()[1](lift)

@@ -73,6 +73,10 @@ class TaskSpec:
     left to right: the camera sits in the world's x = 0 plane facing along y, so the mirror is
     the reflection x -> -x, a symmetry of the task's dynamics. A read-out may average over it
     (``ReadOutStage.mirror``); empty where not declared."""
+    success: Callable[[np.ndarray], bool] | None = field(default=None, compare=False)
+    """Whether an episode that ends in this privileged state [S] succeeded (the manipulation
+    tasks: the block on the goal, or lifted); evaluation reports the rate beside the return.
+    None: the task's return is its only measure."""
 
     def __post_init__(self) -> None:
         if not TASK_NAME.match(self.name):
@@ -103,6 +107,12 @@ def _panda(lift: bool) -> Any:
     return environment(lift)
 
 
+def _panda_success(lift: bool, state: np.ndarray) -> bool:
+    from twist_sim.panda import succeeded
+
+    return succeeded(lift, state)
+
+
 # The six tasks of the paper's Table I, and its two manipulation tasks.
 for _spec in (
         # position (cup x, cup z, ball x, ball z), velocity (the same four).
@@ -117,8 +127,10 @@ for _spec in (
                  model_fields=(("site_pos", "target"), ("site_size", "target"))),
         # The paper's manipulation tasks (twist_sim.panda); the goal marker moves per episode.
         TaskSpec("panda-push", environment=functools.partial(_panda, False),
-                 model_fields=(("site_pos", "goal"),)),
-        TaskSpec("panda-lift", environment=functools.partial(_panda, True))):
+                 model_fields=(("site_pos", "goal"),),
+                 success=functools.partial(_panda_success, False)),
+        TaskSpec("panda-lift", environment=functools.partial(_panda, True),
+                 success=functools.partial(_panda_success, True))):
     _REGISTERED[_spec.name] = _spec
 
 DEFAULT_TASK = "cartpole-balance"

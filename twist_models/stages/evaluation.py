@@ -152,6 +152,9 @@ class EpisodeResult:
     trajectory: dict[str, np.ndarray] | None = None
     """With ``trajectories``: ``state`` [T+1, S] at every agent step, ``action`` [T, A] and
     ``reward`` [T] after it."""
+    success: bool | None = None
+    """Whether the episode's last state meets the task's success (``TaskSpec.success``);
+    None for a task without one."""
 
 
 def evaluation_envs(agent: EvalAgent, config: EvalConfig, batch: int = 1, workers: int = 1,
@@ -279,8 +282,10 @@ def _run_group(agent: EvalAgent, envs: LocalEnvs | EnvWorkers, seed: int, episod
             if trajectories:
                 visited[slot].append(step.state)
                 acted[slot].append((action, step.reward))
+    success = task_spec(envs.settings["task"]).success
     return [EpisodeResult(seed, i, s, totals[k], counts[k],
-                          _trajectory(visited[k], acted[k]) if trajectories else None)
+                          _trajectory(visited[k], acted[k]) if trajectories else None,
+                          None if success is None else bool(success(steps[k].state)))
             for k, (i, s) in enumerate(zip(episodes, seeds, strict=True))]
 
 
@@ -305,7 +310,8 @@ def _act_batch(agent: EvalAgent, steps: list[Step], images: list[np.ndarray | No
 
 
 # -- a whole evaluation: several agents, seeds, files ---------------------------------------------
-EPISODE_COLUMNS = ("agent", "kind", "seed", "episode", "episode_seed", "return", "steps")
+EPISODE_COLUMNS = ("agent", "kind", "seed", "episode", "episode_seed", "return", "steps",
+                   "success")
 TRAJECTORIES = "trajectories"
 
 
@@ -389,7 +395,9 @@ def run_evaluation(agents: Mapping[str, str | os.PathLike[str] | EvalAgent],
                     append_csv(out / "episodes.csv", {
                         "agent": name, "kind": kind, "seed": result.seed,
                         "episode": result.episode, "episode_seed": result.episode_seed,
-                        "return": result.episode_return, "steps": result.steps}, EPISODE_COLUMNS)
+                        "return": result.episode_return, "steps": result.steps,
+                        "success": "" if result.success is None else int(result.success)},
+                               EPISODE_COLUMNS)
                     if result.trajectory is not None:
                         (out / TRAJECTORIES).mkdir(exist_ok=True)
                         np.savez(out / TRAJECTORIES / trajectory_name(name, result.seed, result.episode),
@@ -473,6 +481,8 @@ def summarise(table: pd.DataFrame, config: EvalConfig, against: str | None = Non
             "mean": float(per_seed.mean()),
             "std_over_seeds": float(per_seed.std(ddof=0)),
             "std_over_episodes": float(rows["return"].std(ddof=0))}
+        if "success" in rows and rows["success"].notna().any():
+            entry["success_rate"] = float(rows["success"].dropna().mean())
         # As the report's aggregate: a non-positive oracle mean gives no ratio to normalise by.
         if oracle_mean is not None and oracle_mean > 0:
             strata = [g["return"].to_numpy() / oracle_mean for _, g in rows.groupby("seed")]
