@@ -46,56 +46,51 @@ READY = (0.0, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785)
 PUSH_TOLERANCE = 0.05
 LIFT_HEIGHT = 0.10
 
-_ARM = """
-<body name="link0" pos="-0.55 0 0" childclass="arm" gravcomp="1">
-  <geom type="cylinder" size=".07 .07" pos="0 0 .07"/>
-  <body name="link1" gravcomp="1" pos="0 0 0.333">
-    <joint name="joint1" springref="{q1}" range="-2.8973 2.8973"/>
-    <geom type="capsule" fromto="0 0 -.25 0 0 0" size=".06"/>
-    <body name="link2" gravcomp="1" quat="1 -1 0 0">
-      <joint name="joint2" springref="{q2}" range="-1.7628 1.7628"/>
-      <geom type="capsule" fromto="0 0 0 0 -.316 0" size=".06"/>
-      <body name="link3" gravcomp="1" pos="0 -0.316 0" quat="1 1 0 0">
-        <joint name="joint3" springref="{q3}" range="-2.8973 2.8973"/>
-        <geom type="capsule" fromto="0 0 0 .0825 0 0" size=".055"/>
-        <body name="link4" gravcomp="1" pos="0.0825 0 0" quat="1 1 0 0">
-          <joint name="joint4" springref="{q4}" range="-3.0718 -0.0698"/>
-          <geom type="capsule" fromto="0 0 0 -.0825 .384 0" size=".055"/>
-          <body name="link5" gravcomp="1" pos="-0.0825 0.384 0" quat="1 -1 0 0">
-            <joint name="joint5" springref="{q5}" range="-2.8973 2.8973"/>
-            <geom type="capsule" fromto="0 0 -.12 0 0 0" size=".05"/>
-            <body name="link6" gravcomp="1" quat="1 1 0 0">
-              <joint name="joint6" springref="{q6}" range="-0.0175 3.7525"/>
-              <geom type="capsule" fromto="0 0 0 .088 0 0" size=".045"/>
-              <body name="link7" gravcomp="1" pos="0.088 0 0" quat="1 1 0 0">
-                <joint name="joint7" springref="{q7}" range="-2.8973 2.8973"/>
-                <geom type="cylinder" fromto="0 0 0 0 0 .1" size=".045"/>
-                <body name="hand" gravcomp="1" pos="0 0 0.107" quat="0.9238795 0 0 -0.3826834">
-                  <geom type="box" size=".025 .1 .03" pos="0 0 .03" material="effector"
-                        class="touch"/>
-                  <site name="fingertips" pos="0 0 {fingertips}" size=".005"/>
-                  <body name="left_finger" gravcomp="1" pos="0 0 0.0584">
-                    <joint name="finger1" type="slide" axis="0 1 0" range="0 0.04"
-                           damping="10" stiffness="0"/>
-                    <geom type="box" size=".01 .01 .025" pos="0 .01 .025" material="effector"
-                          class="touch" friction="2 .01 .001"/>
-                  </body>
-                  <body name="right_finger" gravcomp="1" pos="0 0 0.0584" quat="0 0 0 1">
-                    <joint name="finger2" type="slide" axis="0 1 0" range="0 0.04"
-                           damping="10" stiffness="0"/>
-                    <geom type="box" size=".01 .01 .025" pos="0 .01 .025" material="effector"
-                          class="touch" friction="2 .01 .001"/>
-                  </body>
-                </body>
-              </body>
-            </body>
-          </body>
-        </body>
-      </body>
-    </body>
+#: The arm's seven links, base to wrist: where each sits in its parent's frame (position and
+#: quaternion, as the Panda's joint placements), its joint's range (radians) and the capsule,
+#: cylinder for the last, that draws it (from-to in its own frame, radius).
+_LINKS = (
+    ("0 0 0.333", "1 0 0 0", "-2.8973 2.8973", "0 0 -.25 0 0 0", ".06"),
+    ("0 0 0", "1 -1 0 0", "-1.7628 1.7628", "0 0 0 0 -.316 0", ".06"),
+    ("0 -0.316 0", "1 1 0 0", "-2.8973 2.8973", "0 0 0 .0825 0 0", ".055"),
+    ("0.0825 0 0", "1 1 0 0", "-3.0718 -0.0698", "0 0 0 -.0825 .384 0", ".055"),
+    ("-0.0825 0.384 0", "1 -1 0 0", "-2.8973 2.8973", "0 0 -.12 0 0 0", ".05"),
+    ("0 0 0", "1 1 0 0", "-0.0175 3.7525", "0 0 0 .088 0 0", ".045"),
+    ("0.088 0 0", "1 1 0 0", "-2.8973 2.8973", "0 0 0 0 0 .1", ".045"),
+)
+
+#: The hand (at the seventh link's flange, turned 45 degrees) and its two fingers, each a slide
+#: joint of up to 4 cm; the fingers' faces, the hand and the block are what touch.
+_HAND = """
+<body name="hand" gravcomp="1" pos="0 0 0.107" quat="0.9238795 0 0 -0.3826834">
+  <geom type="box" size=".025 .1 .03" pos="0 0 .03" material="effector" class="touch"/>
+  <site name="fingertips" pos="0 0 {fingertips}" size=".005"/>
+  <body name="left_finger" gravcomp="1" pos="0 0 0.0584">
+    <joint name="finger1" type="slide" axis="0 1 0" range="0 0.04" damping="10" stiffness="0"/>
+    <geom type="box" size=".01 .01 .025" pos="0 .01 .025" material="effector" class="touch"
+          friction="2 .01 .001"/>
+  </body>
+  <body name="right_finger" gravcomp="1" pos="0 0 0.0584" quat="0 0 0 1">
+    <joint name="finger2" type="slide" axis="0 1 0" range="0 0.04" damping="10" stiffness="0"/>
+    <geom type="box" size=".01 .01 .025" pos="0 .01 .025" material="effector" class="touch"
+          friction="2 .01 .001"/>
   </body>
 </body>
 """
+
+
+def arm_xml() -> str:
+    """The arm's MJCF: a base, the seven links nested one in the next (each joint held softly
+    towards :data:`READY`), and the hand at the end; gravity compensated throughout."""
+    inner = _HAND.format(fingertips=FINGERTIPS)
+    for i, (pos, quat, limits, fromto, radius) in reversed(list(enumerate(_LINKS, 1))):
+        shape = "cylinder" if i == len(_LINKS) else "capsule"
+        inner = (f'<body name="link{i}" gravcomp="1" pos="{pos}" quat="{quat}">'
+                 f'<joint name="joint{i}" springref="{READY[i - 1]}" range="{limits}"/>'
+                 f'<geom type="{shape}" fromto="{fromto}" size="{radius}"/>{inner}</body>')
+    return ('<body name="link0" pos="-0.55 0 0" childclass="arm" gravcomp="1">'
+            f'<geom type="cylinder" size=".07 .07" pos="0 0 .07"/>{inner}</body>')
+
 
 _GOAL = '<site name="goal" type="cylinder" pos=".1 .1 .0005" size=".03 .0005" material="target"/>'
 
@@ -147,11 +142,8 @@ _SCENE = """
 def scene_xml(lift: bool) -> str:
     """The MJCF of one task's scene: the same arm, table and block; the goal marker shown
     only for pushing."""
-    ready = {f"q{i}": q for i, q in enumerate(READY, 1)}
-    goal = "" if lift else _GOAL
     return _SCENE.format(name="panda-lift" if lift else "panda-push", physics_step=PHYSICS_STEP,
-                         arm=_ARM.format(fingertips=FINGERTIPS, **ready), block_half=BLOCK_HALF,
-                         goal=goal)
+                         arm=arm_xml(), block_half=BLOCK_HALF, goal="" if lift else _GOAL)
 
 
 def _tolerance(distance: float, margin: float) -> float:
