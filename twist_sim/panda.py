@@ -247,14 +247,16 @@ def _site_velocity(physics) -> np.ndarray:
 
 def _fingers_touch(physics) -> bool:
     """Whether both fingers touch the block."""
-    block = physics.model.name2id("block", "geom")
-    touching = set()
-    for contact in physics.data.contact:
-        pair = {int(contact.geom1), int(contact.geom2)}
-        if block in pair:
-            other = (pair - {block}).pop() if len(pair) > 1 else block
-            touching.add(physics.model.body(physics.model.geom_bodyid[other]).name)
-    return {"left_finger", "right_finger"} <= touching
+    import mujoco
+
+    model = physics.model.ptr
+    block = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "block")
+    fingers = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+               for name in ("left_finger", "right_finger")]
+    contact = physics.data.contact
+    pairs = np.stack([contact.geom1, contact.geom2], 1)
+    others = pairs[(pairs == block).any(1)].ravel()  # both of each pair that has the block
+    return bool(np.isin(fingers, model.geom_bodyid[others[others != block]]).all())
 
 
 class _Ready(collections.namedtuple("_Ready", "arm target_pos target_quat")):

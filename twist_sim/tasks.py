@@ -190,9 +190,7 @@ def _check_task(spec: TaskSpec) -> None:
     if not 0 <= spec.camera < model.ncam:
         raise refuse(f"renders camera {spec.camera}, but its model has {model.ncam} cameras")
     for field_name, element in spec.model_fields:
-        kind = _OBJECT_KINDS.get(field_name.split("_")[0])
-        if (kind is None or not hasattr(model, field_name)
-                or mujoco.mj_name2id(model, getattr(mujoco.mjtObj, kind), element) < 0):
+        if _model_field_index(model, field_name, element) is None:
             raise refuse(f"names model field {field_name}[{element}], which its model lacks")
     if all(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, name) < 0
            for name in COLOUR_GROUPS):
@@ -501,10 +499,17 @@ def restore_physics(model, data, physics: np.ndarray, rows: list[np.ndarray], ta
 
 def model_rows(model, spec: TaskSpec) -> list[np.ndarray]:
     """Writable views of the model entries ``spec.model_fields`` names, looked up once."""
+    return [getattr(model, field_name)[_model_field_index(model, field_name, element)]
+            for field_name, element in spec.model_fields]
+
+
+def _model_field_index(model, field_name: str, element: str) -> int | None:
+    """The row of model field ``field_name`` (e.g. ``site_pos``) that element ``element`` owns,
+    or None when the model has no such field or element."""
     import mujoco
 
-    rows = []
-    for field_name, element in spec.model_fields:
-        kind = getattr(mujoco.mjtObj, _OBJECT_KINDS[field_name.split("_")[0]])
-        rows.append(getattr(model, field_name)[mujoco.mj_name2id(model, kind, element)])
-    return rows
+    kind = _OBJECT_KINDS.get(field_name.split("_")[0])
+    if kind is None or not hasattr(model, field_name):
+        return None
+    index = mujoco.mj_name2id(model, getattr(mujoco.mjtObj, kind), element)
+    return None if index < 0 else index
