@@ -75,6 +75,11 @@ def test_a_scripted_grasp_lifts_the_block_and_earns_the_lift_reward() -> None:
     assert height >= panda.LIFT_HEIGHT
     assert step.state[3] == pytest.approx(panda.BLOCK_HALF, abs=0.005)  # fingers on its faces
     assert step.reward / REPEAT > 0.9  # rewards add up over the repeated control steps
+    # Held to the episode's end, where success is judged, without slipping down the fingers.
+    step, _ = _steer(env, step, [*block[:2], block[2] + 0.2], 60, grip=-1.0)
+    assert step.is_last
+    assert step.state[6] - panda.BLOCK_HALF == pytest.approx(height, abs=0.005)
+    assert TASKS["panda-lift"].success(step.state)
 
 
 def test_a_scripted_push_puts_the_block_on_the_goal() -> None:
