@@ -91,6 +91,25 @@ def test_a_velocity_no_image_shows_is_refused_naming_it(inputs) -> None:
         pair_velocities(state, rows.steps == rows.episode_start, (), MLPConfig())
 
 
+def test_a_velocity_is_paired_down_to_min_pairing_and_refused_below_it(inputs) -> None:
+    rows = inputs[3]
+    state = rows.state.numpy().astype(np.float64).copy()
+    is_first = rows.steps == rows.episode_start
+    # ẋ made as loosely the rate of x as a block that stops under friction within a step:
+    # its correlation with x's change, measured here, lies between the two bars tried.
+    noise = np.random.default_rng(1).normal(size=len(state)) * state[:, 3].std()
+    state[:, 3] += 0.9 * noise
+    step = ~is_first[1:]
+    corr = abs(np.corrcoef(np.diff(state[:, 0])[step], state[1:, 3][step])[0, 1])
+    assert 0.6 < corr < 0.8
+    paired = pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth", min_pairing=0.6)
+    assert paired.velocities[0] == (3, 0)
+    with pytest.raises(ConfigError, match=f"best correlation {corr:.2f} .* needs 0.8"):
+        pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth", min_pairing=0.8)
+    with pytest.raises(ConfigError, match="min_pairing must lie in"):
+        ReadOutStage(min_pairing=0.0)
+
+
 def test_robust_standardisation_by_hand() -> None:
     angle = np.array([0.0, 0.1, -0.1, 0.2, 3.0])
     x = np.array([0.0, 1.0, 2.0, 3.0, 100.0])

@@ -32,10 +32,6 @@ from twist_models.config import MLPConfig, ReadOutConfig
 from twist_models.losses import readout_loss
 from twist_models.networks import StateEncoder
 
-#: The least correlation between a velocity and the difference it is paired with. Measured:
-#: cartpole 0.992 and 0.999; cup-catch under a random policy 0.90-0.97 (its cup accelerates
-#: within one agent step), where every other candidate stays below 0.37.
-MIN_PAIRING = 0.8
 #: A (cos, sin) pair lies on the unit circle when c^2 + s^2 is this close to 1 on average.
 UNIT_CIRCLE = 1e-3
 #: MAD of a normal variable over its standard deviation: turns the MAD into a spread.
@@ -60,7 +56,8 @@ def wrapped(angle: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
 
 def pair_velocities(states: np.ndarray, is_first: np.ndarray,
                     layout: tuple[tuple[str, int], ...], encoder: MLPConfig,
-                    task: str = "this task", hidden: tuple[int, ...] = ()) -> ReadOutConfig:
+                    task: str = "this task", hidden: tuple[int, ...] = (),
+                    min_pairing: float = 0.7) -> ReadOutConfig:
     """Measure on D which read component each velocity is the rate of.
 
     ``states`` [N, S] and ``is_first`` [N] are consecutive steps of D's training episodes;
@@ -68,8 +65,8 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
     rest read, except the ``hidden`` ones, which the teacher never reads (its
     ``state_hidden``) and the student need not either. Each velocity is paired with the
     difference (over successive steps of one episode) of a read component, or of a
-    unit-circle pair's angle, that correlates best with it, which must reach
-    :data:`MIN_PAIRING`; its gain is the least-squares factor."""
+    unit-circle pair's angle, that correlates best with it, which must reach ``min_pairing``
+    (``ReadOutStage.min_pairing``); its gain is the least-squares factor."""
     if not layout:
         raise ConfigError(f"the dataset of {task} declares no state layout; the readout recipe "
                           "needs to know which state components are velocities")
@@ -92,10 +89,10 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
         target = states[1:, v][step]
         scores = {k: abs(_correlation(d, target)) for k, d in candidates.items()}
         best = max(scores, key=scores.__getitem__)
-        if scores[best] < MIN_PAIRING:
+        if scores[best] < min_pairing:
             raise ConfigError(f"velocity component {v} of {task} is the rate of no component "
                               f"one image shows (best correlation {scores[best]:.2f} with "
-                              f"component(s) {list(best)}, needs {MIN_PAIRING}); a teacher "
+                              f"component(s) {list(best)}, needs {min_pairing}); a teacher "
                               f"collected with --set 'teacher.world_model.state_hidden=[{v}]' "
                               "never reads it, and its read-out student need not either")
         taken = {tuple(pair[1:]): pair[0] for pair in velocities}

@@ -68,6 +68,7 @@ from twist_models.distillation import (
     KEYS,
     DistilConfig,
     Distillation,
+    ReadOutStage,
     compiled_objective,
     frame_loss,
     latent_agreement,
@@ -189,7 +190,7 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
                                     state_head=config.weights.state > 0,
                                     readout=_pair_readout(data, rows, teacher_model,
                                                           _mirror_mode(config, data),
-                                                          config.readout_stage.lean)
+                                                          config.readout_stage)
                                     if rows is not None else None)
     spec = data.spec
     require_memory(config.batch_size * (config.length + config.window_context)
@@ -232,16 +233,17 @@ def _training_rows(data: MatchingDataset, config: DistilConfig) -> FrameRows:
                                                                config.schedule.holdout_every)))
 
 
-def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher,
-                  mirror: str = "none", lean: float = 1.0) -> ReadOutConfig:
-    """What a read-out student reads and derives, measured on D's training steps, the
-    mirror signs of what it reads where ``mirror`` (``readout_stage.mirror``) asks for them,
-    and how far it leans the angles it reads (``readout_stage.lean``)."""
+def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher, mirror: str,
+                  stage: ReadOutStage) -> ReadOutConfig:
+    """What a read-out student reads and derives, measured on D's training steps (velocities
+    paired at ``stage.min_pairing``), the mirror signs of what it reads where ``mirror``
+    (``stage.mirror`` resolved) asks for them, and how far it leans the angles it reads
+    (``stage.lean``)."""
     wm = teacher.config.world_model
     readout = pair_velocities(rows.state.numpy(), rows.steps == rows.episode_start,
                               data.spec.state_layout, wm.state_mlp, data.spec.task,
-                              hidden=wm.state_hidden)
-    readout = dataclasses.replace(readout, lean=lean)
+                              hidden=wm.state_hidden, min_pairing=stage.min_pairing)
+    readout = dataclasses.replace(readout, lean=stage.lean)
     if mirror == "none":
         return readout
     signs = _mirror(data)
