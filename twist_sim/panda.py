@@ -6,14 +6,16 @@ Menagerie's ``franka_emika_panda`` model gives them) with its links drawn as cap
 rather than meshes: at 64x64 pixels a mesh adds nothing a policy could see, and the package
 ships no asset files. Actions are Cartesian deltas of the gripper, at most 2 cm per agent step
 at the ``quick`` preset's action repeat of 4 (0.5 cm per control step of 25 ms), plus, for
-lifting, the gripper's opening; the hand follows a mocap target through a weld, its
-orientation fixed pointing down, and the arm's joints follow the hand (gravity compensated,
-held softly towards a ready posture so that the redundant elbow stays put). Episodes last 600
-control steps: 150 agent steps at action repeat 4, as the paper's.
+lifting, the gripper's opening. The hand is welded, pointing down, to a target body that three
+force-limited position servos move (at most :data:`MAX_FORCE` per axis, as a real arm's
+controller limits what it presses with); the arm's joints follow the hand (gravity
+compensated, held softly towards a ready posture so that the redundant elbow stays put).
+Episodes last 600 control steps: 150 agent steps at action repeat 4, as the paper's.
 
 Rewards are dense and computed from privileged state, each term a dm_control ``tolerance``
-in [0, 1]: reaching the block, then the block's distance to the goal (push) or the block's
-height with both fingers on it (lift). The materials are named as dm_control's, so that domain
+in [0, 1]: reaching the block, then the block's distance to the goal over 20 cm and over the
+last 5 cm (push), or the block's height with both fingers on it (lift). Pushing's fingers are
+fixed shut; lifting's slide. The materials are named as dm_control's, so that domain
 randomisation recolours the robot (``self``), its hand and fingers (``effector``), the block
 (``decoration``), the goal marker (``target``) and the table (``grid``).
 """
@@ -30,8 +32,18 @@ CONTROL_STEP = 0.025
 PHYSICS_STEP = 0.005
 #: Control steps per episode: 150 agent steps at action repeat 4.
 EPISODE_STEPS = 600
-#: The gripper's largest move per control step (2 cm per agent step at action repeat 4).
+#: The gripper's move per control step at full action, at most (2 cm per agent step at action
+#: repeat 4).
 MAX_DELTA = 0.005
+#: The most each servo that moves the hand pushes with (N): a hand held back by the block or
+#: the table presses with a bounded force. With an unbounded drive (a mocap weld) the fingers
+#: sank through a pressed block and carried it off, and a pushing teacher learned to.
+MAX_FORCE = 30.0
+#: Each control step the servos' set point is put this many times ``MAX_DELTA * action``
+#: ahead of the fingertips, so that the hand, held back by its damping and force limit,
+#: moves 1.5-2 cm per agent step at full action (tested). The set point follows the hand,
+#: not its own last value: the next step depends on the physics state alone.
+SET_POINT_LEAD = 1.5
 #: Where the gripper's fingertips may go: x, y, z bounds in metres (the table's top is z = 0).
 WORKSPACE = np.array([[-0.25, 0.25], [-0.25, 0.25], [0.005, 0.3]])
 #: The gripper's start: above the table's centre.
@@ -59,19 +71,20 @@ _LINKS = (
     ("0.088 0 0", "1 1 0 0", "-2.8973 2.8973", "0 0 0 0 0 .1", ".045"),
 )
 
-#: The hand (at the seventh link's flange, turned 45 degrees) and its two fingers, each a slide
-#: joint of up to 4 cm; the fingers' faces, the hand and the block are what touch.
+#: The hand (at the seventh link's flange, turned 45 degrees) and its two fingers, for lifting
+#: each a slide joint of up to 4 cm (:data:`_FINGER_JOINT`); the fingers' faces, the hand and
+#: the block are what touch.
 _HAND = """
 <body name="hand" gravcomp="1" pos="0 0 0.107" quat="0.9238795 0 0 -0.3826834">
   <geom type="box" size=".025 .1 .03" pos="0 0 .03" material="effector" class="touch"/>
   <site name="fingertips" pos="0 0 {fingertips}" size=".005"/>
   <body name="left_finger" gravcomp="1" pos="0 0 0.0584">
-    <joint name="finger1" type="slide" axis="0 1 0" range="0 0.04" damping="10" stiffness="0"/>
+    {finger1}
     <geom type="box" size=".01 .01 .025" pos="0 .01 .025" material="effector" class="touch"
           friction="2 .01 .001"/>
   </body>
   <body name="right_finger" gravcomp="1" pos="0 0 0.0584" quat="0 0 0 1">
-    <joint name="finger2" type="slide" axis="0 1 0" range="0 0.04" damping="10" stiffness="0"/>
+    {finger2}
     <geom type="box" size=".01 .01 .025" pos="0 .01 .025" material="effector" class="touch"
           friction="2 .01 .001"/>
   </body>
@@ -79,10 +92,23 @@ _HAND = """
 """
 
 
-def arm_xml() -> str:
+#: A finger's slide joint (lifting only): pushing's fingers are fixed shut, since sprung
+#: fingers let a block pressed from above wedge them apart and be carried off.
+_FINGER_JOINT = ('<joint name="finger{}" type="slide" axis="0 1 0" range="0 0.04" damping="10" '
+                 'stiffness="0"/>')
+#: The fingers' coupling and the gripper's actuator (lifting only).
+_GRIPPER = """
+  <equality><joint joint1="finger1" joint2="finger2"/></equality>
+  <actuator><position name="gripper" joint="finger1" kp="300" ctrlrange="0 0.04"/></actuator>
+"""
+
+
+def arm_xml(lift: bool) -> str:
     """The arm's MJCF: a base, the seven links nested one in the next (each joint held softly
-    towards :data:`READY`), and the hand at the end; gravity compensated throughout."""
-    inner = _HAND.format(fingertips=FINGERTIPS)
+    towards :data:`READY`), and the hand at the end, its fingers sliding only for lifting;
+    gravity compensated throughout."""
+    inner = _HAND.format(fingertips=FINGERTIPS,
+                         **{f"finger{i}": _FINGER_JOINT.format(i) if lift else "" for i in (1, 2)})
     for i, (pos, quat, limits, fromto, radius) in reversed(list(enumerate(_LINKS, 1))):
         shape = "cylinder" if i == len(_LINKS) else "capsule"
         inner = (f'<body name="link{i}" gravcomp="1" pos="{pos}" quat="{quat}">'
@@ -107,7 +133,7 @@ _SCENE = """
   <visual><global offwidth="256" offheight="256"/></visual>
   <default>
     <default class="arm">
-      <joint axis="0 0 1" damping="20" stiffness="20" armature="0.1"/>
+      <joint axis="0 0 1" damping="5" stiffness="1" armature="0.1"/>
       <geom material="self" contype="0" conaffinity="0" mass="1"/>
       <default class="touch"><geom contype="1" conaffinity="1" mass=".3"/></default>
     </default>
@@ -129,28 +155,55 @@ _SCENE = """
     <body name="block" pos="0 0 {block_half}">
       <freejoint name="block"/>
       <geom name="block" type="box" size="{block_half} {block_half} {block_half}" mass=".1"
-            material="decoration" friction="1 .005 .0001"/>
+            material="decoration" friction="1 .005 .0001" solref=".01 1" solimp=".95 .99 .001"/>
     </body>
     {goal}
-    <body name="target" mocap="true" pos="0 0 .3"/>
+    <body name="target" gravcomp="1">
+      <joint name="target_x" type="slide" axis="1 0 0"/>
+      <joint name="target_y" type="slide" axis="0 1 0"/>
+      <joint name="target_z" type="slide" axis="0 0 1"/>
+      <inertial pos="0 0 0" mass=".1" diaginertia="1e-4 1e-4 1e-4"/>
+    </body>
   </worldbody>
   <equality>
-    <weld body1="target" body2="hand" relpose="0 0 0 1 0 0 0" solref=".01 1"/>
-    <joint joint1="finger1" joint2="finger2"/>
+    <weld body1="target" body2="hand" relpose="0 0 0 {hand_quat}" solref=".01 1"/>
   </equality>
   <actuator>
-    <position name="gripper" joint="finger1" kp="300" ctrlrange="0 0.04"/>
-  </actuator>
+    <position name="move_x" joint="target_x" {servo}/>
+    <position name="move_y" joint="target_y" {servo}/>
+    <position name="move_z" joint="target_z" {servo}/>
+  </actuator>{gripper}
 </mujoco>
 """
 
 
-def scene_xml(lift: bool) -> str:
+def scene_xml(lift: bool, hand_quat: tuple[float, ...] | None = None) -> str:
     """The MJCF of one task's scene: the same arm, table and block; the goal marker shown
-    only for pushing."""
+    only for pushing. The hand's weld holds ``hand_quat`` (default: pointing down)."""
+    quat = _hand_down() if hand_quat is None else hand_quat
     return _SCENE.format(name="panda-lift" if lift else "panda-push", physics_step=PHYSICS_STEP,
-                         grasp_friction=_GRASP_FRICTION if lift else "", arm=arm_xml(),
-                         block_half=BLOCK_HALF, goal="" if lift else _GOAL)
+                         grasp_friction=_GRASP_FRICTION if lift else "", arm=arm_xml(lift),
+                         block_half=BLOCK_HALF, goal="" if lift else _GOAL,
+                         hand_quat=" ".join(f"{q:.9g}" for q in quat),
+                         servo=_SERVO.format(force=MAX_FORCE),
+                         gripper=_GRIPPER if lift else "")
+
+
+#: The hand's servos: stiff and critically damped, each pushing with at most ``force``.
+_SERVO = 'kp="10000" dampratio="1" forcelimited="true" forcerange="-{force} {force}"'
+
+
+@functools.cache
+def _hand_down() -> tuple[float, ...]:
+    """The hand's orientation (a quaternion) in the arm's ready posture, which points it
+    straight down (q2 - q4 - q6 = 0): the one its weld to the target holds."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_string(scene_xml(False, hand_quat=(1.0, 0.0, 0.0, 0.0)))
+    data = mujoco.MjData(model)
+    data.qpos[[model.joint(f"joint{i}").qposadr[0] for i in range(1, 8)]] = READY
+    mujoco.mj_forward(model, data)
+    return tuple(float(q) for q in data.xquat[model.body("hand").id])
 
 
 def _tolerance(distance: float, margin: float) -> float:
@@ -181,8 +234,8 @@ def _task_class():
         def initialize_episode(self, physics):
             ready = _ready_posture(self.lift)
             physics.named.data.qpos[[f"joint{i}" for i in range(1, 8)]] = ready.arm
-            physics.data.mocap_pos[0] = ready.target_pos
-            physics.data.mocap_quat[0] = ready.target_quat
+            physics.named.data.qpos[list(_TARGET_JOINTS)] = ready.target
+            physics.named.data.ctrl[list(_SERVOS)] = ready.set_point
             side = self.random.uniform(-0.15, 0.15, size=2)
             block = np.array([side[0] * 0.8, side[1], BLOCK_HALF])
             physics.named.data.qpos["block"][:3] = block
@@ -193,17 +246,17 @@ def _task_class():
                 goal = np.clip(block[:2] + distance * np.array([np.cos(angle), np.sin(angle)]),
                                -0.2, 0.2)
                 physics.named.model.site_pos["goal"][:2] = goal
-            physics.data.ctrl[0] = 0.0 if not self.lift else 0.04
+            if self.lift:
+                physics.named.data.ctrl["gripper"] = 0.04
 
         def before_step(self, action, physics):
             action = np.asarray(action, np.float64)
-            target = physics.data.mocap_pos[0]
-            grip = target[2] - FINGERTIPS
-            moved = np.clip(np.array([target[0], target[1], grip]) + MAX_DELTA * action[:3],
+            ahead = SET_POINT_LEAD * MAX_DELTA * action[:3]
+            moved = np.clip(physics.named.data.site_xpos["fingertips"] + ahead,
                             WORKSPACE[:, 0], WORKSPACE[:, 1])
-            physics.data.mocap_pos[0] = (moved[0], moved[1], moved[2] + FINGERTIPS)
+            physics.named.data.ctrl[list(_SERVOS)] = moved + _HAND_ABOVE
             if self.lift:
-                physics.data.ctrl[0] = 0.02 * (1.0 + action[3])
+                physics.named.data.ctrl["gripper"] = 0.02 * (1.0 + action[3])
 
         def get_observation(self, physics):
             grip = physics.named.data.site_xpos["fingertips"].copy()
@@ -223,9 +276,12 @@ def _task_class():
             block = physics.named.data.xpos["block"]
             reach = _tolerance(float(np.linalg.norm(grip - block)), 0.2)
             if not self.lift:
-                goal = physics.named.model.site_pos["goal"][:2]
-                placed = _tolerance(float(np.linalg.norm(block[:2] - goal)), 0.2)
-                return 0.3 * reach + 0.7 * placed
+                away = float(np.linalg.norm(block[:2] - physics.named.model.site_pos["goal"][:2]))
+                # The near term pays for the last centimetres, which the far one hardly does
+                # (0.87 of it at the success tolerance): without it a teacher brought blocks
+                # within 2 cm of the goal and let them end 7 cm off, past it.
+                return (0.3 * reach + 0.4 * _tolerance(away, 0.2)
+                        + 0.3 * _tolerance(away, PUSH_TOLERANCE))
             grasped = float(_fingers_touch(physics))
             height = block[2] - BLOCK_HALF
             lifted = _tolerance(max(LIFT_HEIGHT - height, 0.0), LIFT_HEIGHT)
@@ -266,8 +322,16 @@ def _fingers_touch(physics) -> bool:
     return bool(np.isin(fingers, model.geom_bodyid[others[others != block]]).all())
 
 
-class _Ready(collections.namedtuple("_Ready", "arm target_pos target_quat")):
-    """The arm's joints, and the mocap target's pose, with the gripper at :data:`START`."""
+#: The target body's slide joints and the servos that move them, x, y, z; the target sits
+#: this far above the fingertips (the hand's frame, pointing down).
+_TARGET_JOINTS = ("target_x", "target_y", "target_z")
+_SERVOS = ("move_x", "move_y", "move_z")
+_HAND_ABOVE = np.array([0.0, 0.0, FINGERTIPS])
+
+
+class _Ready(collections.namedtuple("_Ready", "arm target set_point")):
+    """The arm's joints, the target's joints and the servos' set point, with the gripper
+    settled at :data:`START`."""
 
 
 @functools.cache
@@ -279,17 +343,16 @@ def _ready_posture(lift: bool) -> _Ready:
     model = mujoco.MjModel.from_xml_string(scene_xml(lift))
     data = mujoco.MjData(model)
     arm = [model.joint(f"joint{i}").qposadr[0] for i in range(1, 8)]
+    target = [model.joint(name).qposadr[0] for name in _TARGET_JOINTS]
+    servos = [model.actuator(name).id for name in _SERVOS]
     data.qpos[arm] = READY
     mujoco.mj_forward(model, data)
-    # The hand's orientation in the ready posture, which points it straight down
-    # (q2 - q4 - q6 = 0), is the one the target holds.
-    quat = data.xquat[model.body("hand").id].copy()
-    data.mocap_pos[0] = (*START[:2], START[2] + FINGERTIPS)
-    data.mocap_quat[0] = quat
+    data.qpos[target] = data.xpos[model.body("hand").id]  # the weld satisfied at the start
+    data.ctrl[servos] = START + _HAND_ABOVE
     for _ in range(1500):
         mujoco.mj_step(model, data)
-    return _Ready(tuple(float(q) for q in data.qpos[arm]), data.mocap_pos[0].copy(),
-                  quat.copy())
+    return _Ready(tuple(float(q) for q in data.qpos[arm]), data.qpos[target].copy(),
+                  data.ctrl[servos].copy())
 
 
 def succeeded(lift: bool, state: np.ndarray) -> bool:

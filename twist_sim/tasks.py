@@ -225,8 +225,8 @@ def load_task_modules() -> None:
 
 def physics_signature(model) -> int:
     """mj_getState signature of the physics vector: time, qpos, qvel, act and plugin state,
-    and a mocap body's pose where the model has one (the manipulation tasks' gripper target;
-    MuJoCo keeps it apart from the full physics state, and the suite tasks have none)."""
+    and a mocap body's pose where the model has one (a task driven through a mocap body:
+    MuJoCo keeps its pose apart from the full physics state; the built-in tasks have none)."""
     import mujoco
 
     signature = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
