@@ -1,5 +1,6 @@
 """The manipulation tasks: the gripper moves as its action says, a scripted grasp lifts the
-block and a scripted push puts it on the goal, and every instant restores exactly."""
+block and holds it, a scripted push puts it on the goal, a hand pressed onto the block neither
+sinks into it nor carries it off, and every instant restores exactly."""
 
 from __future__ import annotations
 
