@@ -42,6 +42,7 @@ from twist_models.losses import (
     frame_posterior_loss,
     imagined_distillation_loss,
 )
+from twist_models.readout import MIN_PAIRING
 from twist_models.rssm import FILTER_CHUNK
 from twist_models.student import Student
 from twist_models.teacher import Teacher
@@ -167,7 +168,7 @@ class ReadOutStage:
     to the teacher's filter than it is read (``ReadOutConfig.lean``; 1: as read); any
     ``steps`` of Eq. 3/4 train through it. The recipe's 1.25 was chosen on held-out scenes of
     another evaluation seed than the reported one, among 1, 1.15, 1.25, 1.35 and 1.5."""
-    min_pairing: float = 0.7
+    min_pairing: float = MIN_PAIRING
     """The least correlation, over D's steps, between a velocity and the difference of
     successive read-outs it is derived from; below it the velocity counts as one no image
     shows and distillation is refused, naming it. Measured: cartpole 0.99; cup-catch

@@ -32,6 +32,9 @@ from twist_models.config import MLPConfig, ReadOutConfig
 from twist_models.losses import readout_loss
 from twist_models.networks import StateEncoder
 
+#: The default least correlation of a velocity with the difference it is derived from
+#: (``ReadOutStage.min_pairing``, which gives the measurements).
+MIN_PAIRING = 0.7
 #: A (cos, sin) pair lies on the unit circle when c^2 + s^2 is this close to 1 on average.
 UNIT_CIRCLE = 1e-3
 #: MAD of a normal variable over its standard deviation: turns the MAD into a spread.
@@ -57,7 +60,7 @@ def wrapped(angle: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
 def pair_velocities(states: np.ndarray, is_first: np.ndarray,
                     layout: tuple[tuple[str, int], ...], encoder: MLPConfig,
                     task: str = "this task", hidden: tuple[int, ...] = (),
-                    min_pairing: float = 0.7) -> ReadOutConfig:
+                    min_pairing: float = MIN_PAIRING) -> ReadOutConfig:
     """Measure on D which read component each velocity is the rate of.
 
     ``states`` [N, S] and ``is_first`` [N] are consecutive steps of D's training episodes;

@@ -251,12 +251,13 @@ def _task_class():
 
         def before_step(self, action, physics):
             action = np.asarray(action, np.float64)
+            ids = _scene_ids(self.lift)
             ahead = SET_POINT_LEAD * MAX_DELTA * action[:3]
-            moved = np.clip(physics.named.data.site_xpos["fingertips"] + ahead,
+            moved = np.clip(physics.data.site_xpos[ids.fingertips] + ahead,
                             WORKSPACE[:, 0], WORKSPACE[:, 1])
-            physics.named.data.ctrl[list(_SERVOS)] = moved + _HAND_ABOVE
+            physics.data.ctrl[ids.servos] = moved + _HAND_ABOVE
             if self.lift:
-                physics.named.data.ctrl["gripper"] = 0.02 * (1.0 + action[3])
+                physics.data.ctrl[ids.gripper] = 0.02 * (1.0 + action[3])
 
         def get_observation(self, physics):
             grip = physics.named.data.site_xpos["fingertips"].copy()
@@ -309,17 +310,35 @@ def _site_velocity(physics) -> np.ndarray:
 
 
 def _fingers_touch(physics) -> bool:
-    """Whether both fingers touch the block."""
-    import mujoco
-
-    model = physics.model.ptr
-    block = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "block")
-    fingers = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
-               for name in ("left_finger", "right_finger")]
+    """Whether both fingers touch the block (lifting's scene)."""
+    ids = _scene_ids(True)
     contact = physics.data.contact
     pairs = np.stack([contact.geom1, contact.geom2], 1)
-    others = pairs[(pairs == block).any(1)].ravel()  # both of each pair that has the block
-    return bool(np.isin(fingers, model.geom_bodyid[others[others != block]]).all())
+    others = pairs[(pairs == ids.block).any(1)].ravel()  # both of each pair with the block
+    touched = physics.model.geom_bodyid[others[others != ids.block]]
+    return bool(np.isin(ids.fingers, touched).all())
+
+
+class _SceneIds(collections.namedtuple("_SceneIds",
+                                       "fingertips servos gripper block fingers")):
+    """Indices into a scene's MuJoCo arrays that every control step uses, looked up once:
+    the fingertips' site, the hand's servos (x, y, z), the gripper's actuator (lifting;
+    else -1), the block's geom and the fingers' bodies."""
+
+
+@functools.cache
+def _scene_ids(lift: bool) -> _SceneIds:
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_string(scene_xml(lift))
+    obj = mujoco.mjtObj
+    return _SceneIds(mujoco.mj_name2id(model, obj.mjOBJ_SITE, "fingertips"),
+                     np.array([mujoco.mj_name2id(model, obj.mjOBJ_ACTUATOR, name)
+                               for name in _SERVOS]),
+                     mujoco.mj_name2id(model, obj.mjOBJ_ACTUATOR, "gripper"),
+                     mujoco.mj_name2id(model, obj.mjOBJ_GEOM, "block"),
+                     np.array([mujoco.mj_name2id(model, obj.mjOBJ_BODY, name)
+                               for name in ("left_finger", "right_finger")]))
 
 
 #: The target body's slide joints and the servos that move them, x, y, z; the target sits
