@@ -104,8 +104,13 @@ def test_a_velocity_is_paired_down_to_min_pairing_and_refused_below_it(inputs) -
     assert 0.6 < corr < 0.8
     paired = pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth", min_pairing=0.6)
     assert paired.velocities[0] == (3, 0)
-    with pytest.raises(ConfigError, match=f"best correlation {corr:.2f} .* needs 0.8"):
+    with pytest.raises(ConfigError, match=f"best correlation {corr:.2f} .* needs 0.8") as refused:
         pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth", min_pairing=0.8)
+    # The refusal names the bar that would accept the pairing, and that bar does.
+    offered = float(re.search(r"min_pairing=([0-9.]+) accepts it", str(refused.value))[1])
+    assert corr - 0.01 <= offered <= corr
+    assert pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth",
+                           min_pairing=offered).velocities[0] == (3, 0)
     with pytest.raises(ConfigError, match="min_pairing must lie in"):
         ReadOutStage(min_pairing=0.0)
 
@@ -441,8 +446,9 @@ def test_a_velocity_the_teacher_never_reads_is_neither_paired_nor_read(inputs,
     is_first = rows.steps == rows.episode_start
     config = pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth", hidden=(4,))
     assert config.velocities == ((3, 0),) and config.hidden == (4,) and config.read == (0, 1, 2)
-    with pytest.raises(ConfigError, match=re.escape("state_hidden=[4]' never reads it")):
+    with pytest.raises(ConfigError, match=re.escape("state_hidden=[4]' never reads it")) as no:
         pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth")
+    assert "min_pairing" not in str(no.value)  # the rate of nothing: no bar to lower
     # A teacher of positions only: its student reads them and derives nothing.
     assert pair_velocities(state, is_first, LAYOUT, MLPConfig(), hidden=(3, 4)).velocities == ()
     with pytest.raises(ConfigError, match=r"nothing to read from an image \(hidden: \[0, 1, 2"):

@@ -22,6 +22,7 @@ predicting their mean, and the filter balanced on nothing but the velocity
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 import torch
@@ -93,11 +94,15 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
         scores = {k: abs(_correlation(d, target)) for k, d in candidates.items()}
         best = max(scores, key=scores.__getitem__)
         if scores[best] < min_pairing:
+            bar = math.floor(scores[best] * 100) / 100
+            # Below ~0.3 the best candidate is no rate at all: accepting it is no advice.
+            loose = (f"; or, if that pairing is right but loose, --set "
+                     f"readout_stage.min_pairing={bar} accepts it" if bar >= 0.3 else "")
             raise ConfigError(f"velocity component {v} of {task} is the rate of no component "
                               f"one image shows (best correlation {scores[best]:.2f} with "
                               f"component(s) {list(best)}, needs {min_pairing}); a teacher "
                               f"collected with --set 'teacher.world_model.state_hidden=[{v}]' "
-                              "never reads it, and its read-out student need not either")
+                              f"never reads it, and its read-out student need not either{loose}")
         taken = {tuple(pair[1:]): pair[0] for pair in velocities}
         if best in taken:
             raise ConfigError(f"velocity components {taken[best]} and {v} of {task} pair "
