@@ -108,9 +108,13 @@ def main() -> None:
     config = EvalConfig(task=teacher.task, dr=args.dr, episodes=args.episodes,
                         action_repeat=teacher.action_repeat)
 
-    def mean_return(agent: object) -> float:
+    def mean_return(agent: object) -> float | dict[str, float]:
+        """The mean return, and beside it the success rate where the task defines one."""
         results = evaluate(agent, config, seed=args.seed)  # type: ignore[arg-type]
-        return round(float(np.mean([r.episode_return for r in results])), 1)
+        mean = round(float(np.mean([r.episode_return for r in results])), 1)
+        if results[0].success is None:
+            return mean
+        return {"return": mean, "success": round(float(np.mean([r.success for r in results])), 3)}
 
     dataset = open_dataset(args.dataset)
     states, first = dataset.column("state"), dataset.column("is_first").astype(bool)
