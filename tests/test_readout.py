@@ -659,3 +659,83 @@ def test_a_student_saved_with_its_former_key_layout_loads_and_reads_alike(inputs
     with torch.no_grad():
         torch.testing.assert_close(loaded.step_embed(torch.as_tensor(images), None),
                                    saved.step_embed(torch.as_tensor(images), None))
+
+
+def _embedding_change(readout, before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+    """Mean squared change of the teacher's embedding between two batches of states."""
+    with torch.no_grad():
+        return (readout.encoder(after) - readout.encoder(before)).pow(2).sum(-1).mean()
+
+
+def test_teacher_units_match_the_embeddings_change_under_small_errors(inputs) -> None:
+    _, _, teacher, rows = inputs
+    config = _paired(rows)
+    student = Student(student_preset("tiny", teacher.config, readout=config))
+    copy_teacher_filter(student, teacher.world_model)
+    readout = student.perception.readout
+    states = rows.state[:64]
+    units = readout.teacher_units(states)
+    # By finite differences: each slot's error moves the read component and, through the
+    # derived velocity, that velocity by g * (e_t - e_{t-1}), of variance 2 g^2 e^2.
+    eps, position = 1e-3, {i: k for k, i in enumerate(config.read)}
+    expected = torch.zeros(len(config.read))
+    for i in config.read:
+        if any(i in pair for pair in config.angles):
+            continue
+        moved = states.clone()
+        moved[:, i] += eps
+        expected[position[i]] = _embedding_change(readout, states, moved) / eps**2
+    (c, s), = config.angles
+    angle = torch.atan2(states[:, s], states[:, c])
+    for slot, (new_c, new_s) in {
+            position[s]: (torch.cos(angle + eps), torch.sin(angle + eps)),  # turned
+            position[c]: ((1 + eps) * states[:, c], (1 + eps) * states[:, s])}.items():  # longer
+        moved = states.clone()
+        moved[:, c], moved[:, s] = new_c, new_s
+        expected[slot] = _embedding_change(readout, states, moved) / eps**2
+    for k, velocity in enumerate(config.velocities):
+        moved = states.clone()
+        moved[:, velocity[0]] += eps
+        expected[position[velocity[-1]]] += (2 * config.gains[k] ** 2
+                                             * _embedding_change(readout, states, moved) / eps**2)
+    torch.testing.assert_close(units, expected.rsqrt(), rtol=2e-2, atol=0.0)
+
+
+def test_teacher_units_spend_the_loss_on_what_the_teachers_filter_reads() -> None:
+    config = ReadOutConfig(state_dim=3, read=(0, 1), angles=(), velocities=((2, 0),),
+                           gains=(1.0,), encoder=MLPConfig(layers=1, units=4))
+    readout = StateReadOut(config, features=2)
+    with torch.no_grad():
+        readout.head.weight.copy_(torch.eye(2))
+        readout.head.bias.zero_()
+        readout.encoder[0].weight[:, 1] = 0.0  # the filter never reads component 1
+    # Component 1 barely varies over D, so in robust spreads its error dominates the loss.
+    readout.set_standardisation(np.zeros(2), np.array([1.0, 0.001]))
+    states = torch.randn(32, 3)
+    features = torch.tensor([[0.5, 0.0]])  # component 0 read 0.5 off
+    tiny_error = torch.tensor([[0.0, 0.002, 0.0]])  # component 1 read 0.002 off (2 spreads)
+    robust = readout.loss(features, tiny_error, delta=17.0)
+    assert float(robust.detach()) == pytest.approx((0.5**2 + 2.0**2) / 4, rel=1e-5)
+    readout.weigh_by_teacher(states)
+    assert float(readout.loss_weight[1]) < 1e-4  # unread: its error no longer counts
+    weighted = readout.loss(features, tiny_error, delta=17.0)
+    unit = float(readout.teacher_units(states)[0])
+    assert float(weighted.detach()) == pytest.approx(0.5 * (0.5 / unit) ** 2 / 2, rel=1e-3)
+    # The weight is the loss's alone: reading and the reported error stay in robust spreads.
+    assert float(readout.error(features, tiny_error)) == pytest.approx(
+        np.sqrt((0.5**2 + 2.0**2) / 2), rel=1e-5)
+
+
+def test_a_readout_trained_in_teacher_units_saves_and_resumes(inputs, tmp_path: Path) -> None:
+    dataset, teacher_path, _, _ = inputs
+    config = distil_preset("tiny", "readout", **{"readout_stage.units": "teacher"})
+    summary = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
+    agent = Agent.load(summary.agent)
+    # Measured anew by each run from D and the teacher, so neither saved nor needed to act.
+    assert not any("loss_weight" in key for key in agent.student.state_dict())
+    longer = dataclasses.replace(config, frame_steps=config.frame_steps + 2)
+    resumed = distil(dataset, tmp_path / "run", longer, teacher=teacher_path, resume=True)
+    assert Agent.load(resumed.agent).info["frame_updates"] == config.frame_steps + 2
+    assert stored_config(tmp_path / "run").readout_stage.units == "teacher"
+    with pytest.raises(ConfigError, match=r"units.*'spreads'"):
+        ReadOutStage(units="spreads")

@@ -174,6 +174,14 @@ class ReadOutStage:
     shows and distillation is refused, naming it. Measured: cartpole 0.99; cup-catch
     0.90-0.97; hopper-stand 0.91-0.95; panda-push's block, which stops within an agent step
     under friction, 0.76-0.87; cheetah-run's root speed, which no image shows, 0.43."""
+    units: str = "robust"
+    """What the first stage's loss measures each read component's error in: ``robust``, its
+    robust spread over D (the error in spreads that ``read_error`` reports); ``teacher``,
+    the error that moves the teacher's state embedding by one unit, velocities derived from
+    it included (:meth:`~twist_models.readout.StateReadOut.teacher_units`): a robust spread
+    of millimetres (a pushed block's height, a hand mostly at the table) would otherwise
+    outweigh every centimetre the filter acts on (docs/findings.md). ``huber_delta`` is then
+    in those units."""
     first_velocity: str = "zero"
     """Where its velocities at a training window's first step come from, mid-episode:
     ``read`` (the recipe's), the difference with the frame before the window, which the
@@ -184,6 +192,7 @@ class ReadOutStage:
         require_choice(self, "frames", ("auto", "typical", "all"))
         require_choice(self, "mirror", READOUT_MIRRORS)
         require_choice(self, "first_velocity", ("read", "zero"))
+        require_choice(self, "units", ("robust", "teacher"))
         require_positive(self, "typical_spreads", "huber_delta")
         if not 0 <= self.max_atypical_share <= 1:
             raise ConfigError(f"max_atypical_share must lie in [0, 1], got "

@@ -167,6 +167,9 @@ class StateReadOut(nn.Module):
         # From the config, so not saved: bundles written before mirroring existed still load.
         self.register_buffer("mirror", torch.tensor(config.mirror, dtype=torch.float32),
                              persistent=False)
+        # What the loss multiplies each robust-spread error by (:meth:`weigh_by_teacher`);
+        # measured again by every run that trains, so not saved.
+        self.register_buffer("loss_weight", torch.ones(len(config.read)), persistent=False)
         self.encoder = StateEncoder(config.state_dim, config.encoder)
         self.out_dim = self.encoder.out_dim
         position = {i: k for k, i in enumerate(config.read)}
@@ -179,9 +182,41 @@ class StateReadOut(nn.Module):
 
     def loss(self, features: torch.Tensor, state: torch.Tensor, delta: float) -> torch.Tensor:
         """The first stage's term: CNN features [..., F] and the true state [..., S] -> []:
-        the Huber loss of :meth:`errors`, quadratic to ``delta`` robust spreads
-        (:func:`~twist_models.losses.readout_loss`)."""
-        return readout_loss(self.errors(self.read(features), state), delta)
+        the Huber loss of :meth:`errors` times ``loss_weight``, quadratic to ``delta`` units
+        (robust spreads unless :meth:`weigh_by_teacher` set other units;
+        :func:`~twist_models.losses.readout_loss`)."""
+        return readout_loss(self.errors(self.read(features), state) * self.loss_weight, delta)
+
+    @torch.no_grad()
+    def teacher_units(self, states: torch.Tensor) -> torch.Tensor:
+        """Each read component's error that moves the teacher's state embedding by one unit
+        (root mean square over ``states`` [N, S], the teacher's own encoder) -> [R], in the
+        units of :meth:`errors`' slots times ``scale`` (a position's, an angle's radians, a
+        (cos, sin) pair's length). A component's velocity is derived from it by a gain g,
+        and an error independent between steps enters that difference twice, so its share
+        is 2 g^2 times the velocity's sensitivity."""
+        jacobian = torch.func.vmap(torch.func.jacrev(self.encoder))(states.float())  # [N, E, S]
+        position = {i: k for k, i in enumerate(self.config.read)}
+        # Per sample, the embedding's change per unit of each slot's error: [N, E, R].
+        along = jacobian[..., list(self.config.read)].clone()
+        for c, s in self.angle_slots:
+            cos, sin = states[:, self.config.read[c], None], states[:, self.config.read[s], None]
+            d_cos, d_sin = jacobian[..., self.config.read[c]], jacobian[..., self.config.read[s]]
+            along[..., s] = -sin * d_cos + cos * d_sin  # turning the angle
+            along[..., c] = cos * d_cos + sin * d_sin  # lengthening the pair
+        sensitivity = along.pow(2).sum(1).mean(0)
+        for k, velocity in enumerate(self.config.velocities):
+            slot = position[velocity[-1]]  # a linear rate's position, an angle's sine
+            sensitivity[slot] += 2 * self.gains[k] ** 2 * jacobian[..., velocity[0]].pow(2).sum(1).mean()
+        return sensitivity.clamp_min(1e-12).rsqrt()
+
+    @torch.no_grad()
+    def weigh_by_teacher(self, states: torch.Tensor) -> None:
+        """Measure the loss's errors in :meth:`teacher_units` over ``states`` [N, S] instead
+        of D's robust spreads, so that the CNN is spent on what moves the teacher's filter:
+        a robust spread can be millimetres for a component the filter hardly reads (a pushed
+        block's height), which the squared error then outweighs every other with."""
+        self.loss_weight.copy_(self.scale / self.teacher_units(states))
 
     def read(self, features: torch.Tensor) -> torch.Tensor:
         """The read components in the state's units, as the head gives them: [..., F] ->

@@ -302,6 +302,17 @@ def same_student(a: StudentConfig, b: StudentConfig) -> bool:
         a, readout=dataclasses.replace(a.readout, gains=b.readout.gains)) == b
 
 
+#: States the teacher's sensitivity is averaged over (``readout_stage.units=teacher``).
+UNITS_SAMPLE = 2048
+
+
+def _units_sample(states: torch.Tensor, seed: int) -> torch.Tensor:
+    """A seeded draw of ``UNITS_SAMPLE`` of D's states [N, S], the same on resume."""
+    rows = np.random.default_rng(derived_seed(seed, 11)).choice(
+        len(states), min(UNITS_SAMPLE, len(states)), replace=False)
+    return states[torch.as_tensor(np.sort(rows))]
+
+
 def _rank_and_world() -> tuple[int, int]:
     dist = torch.distributed
     if dist.is_available() and dist.is_initialized():
@@ -354,6 +365,8 @@ class Distiller:
                 copy_teacher_dynamics(self.student, self.teacher.world_model.rssm)
             # Ranks start from one student but draw their own latent samples and noise.
             torch.manual_seed(derived_seed(config.seed, 5, rank))
+        if self.student.perception.readout is not None and config.readout_stage.units == "teacher":
+            self.student.perception.readout.weigh_by_teacher(_units_sample(rows.state, config.seed))
         if config.freeze_dynamics:
             freeze_dynamics(self.student)
         self.student.to(device)
