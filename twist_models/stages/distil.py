@@ -366,7 +366,10 @@ class Distiller:
             # Ranks start from one student but draw their own latent samples and noise.
             torch.manual_seed(derived_seed(config.seed, 5, rank))
         if self.student.perception.readout is not None and config.readout_stage.units == "teacher":
-            self.student.perception.readout.weigh_by_teacher(_units_sample(rows.state, config.seed))
+            readout = self.student.perception.readout
+            readout.weigh_by_teacher(_units_sample(rows.state, config.seed))
+            log.info("the read-out's loss counts each error in units of %s (state units)",
+                     np.round((readout.scale / readout.loss_weight).numpy(), 4).tolist())
         if config.freeze_dynamics:
             freeze_dynamics(self.student)
         self.student.to(device)
