@@ -369,7 +369,7 @@ class Distiller:
             readout = self.student.perception.readout
             readout.weigh_by_teacher(_units_sample(rows.state, config.seed))
             log.info("the read-out's loss counts each error in units of %s (state units)",
-                     np.round((readout.scale / readout.loss_weight).numpy(), 4).tolist())
+                     [round(float(u), 4) for u in readout.scale / readout.loss_weight])
         if config.freeze_dynamics:
             freeze_dynamics(self.student)
         self.student.to(device)
