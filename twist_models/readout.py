@@ -196,7 +196,6 @@ class StateReadOut(nn.Module):
         and an error independent between steps enters that difference twice, so its share
         is 2 g^2 times the velocity's sensitivity."""
         jacobian = torch.func.vmap(torch.func.jacrev(self.encoder))(states.float())  # [N, E, S]
-        position = {i: k for k, i in enumerate(self.config.read)}
         # Per sample, the embedding's change per unit of each slot's error: [N, E, R].
         along = jacobian[..., list(self.config.read)].clone()
         for c, s in self.angle_slots:
@@ -205,9 +204,10 @@ class StateReadOut(nn.Module):
             along[..., s] = -sin * d_cos + cos * d_sin  # turning the angle
             along[..., c] = cos * d_cos + sin * d_sin  # lengthening the pair
         sensitivity = along.pow(2).sum(1).mean(0)
-        for k, velocity in enumerate(self.config.velocities):
-            slot = position[velocity[-1]]  # a linear rate's position, an angle's sine
-            sensitivity[slot] += 2 * self.gains[k] ** 2 * jacobian[..., velocity[0]].pow(2).sum(1).mean()
+        # Each velocity's slot: a linear rate's position, an angle's sine.
+        for k, slot in [*self._linear, *((k, s) for k, _, s in self._angular)]:
+            velocity = jacobian[..., self.config.velocities[k][0]]
+            sensitivity[slot] += 2 * self.gains[k] ** 2 * velocity.pow(2).sum(1).mean()
         return sensitivity.clamp_min(1e-12).rsqrt()
 
     @torch.no_grad()

@@ -66,14 +66,17 @@ class KeypointHead(nn.Module):
         self.log_temperature = nn.Parameter(torch.zeros(()))
         self.head = nn.Linear(2 * maps, outputs)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        maps = self.maps(self.trunk(x)).float()
+    def points(self, early: torch.Tensor) -> torch.Tensor:
+        """The trunk's output [N, C, H, W] -> the maps' soft-argmax positions [N, 2 * maps]."""
+        maps = self.maps(early).float()
         h, w = maps.shape[-2:]
         weights = torch.softmax(maps.flatten(2) * self.log_temperature.exp(), -1)
-        ys = torch.linspace(-1, 1, h, device=x.device).repeat_interleave(w)
-        xs = torch.linspace(-1, 1, w, device=x.device).repeat(h)
-        points = torch.cat([(weights * xs).sum(-1), (weights * ys).sum(-1)], -1)
-        return self.head(points)
+        ys = torch.linspace(-1, 1, h, device=early.device).repeat_interleave(w)
+        xs = torch.linspace(-1, 1, w, device=early.device).repeat(h)
+        return torch.cat([(weights * xs).sum(-1), (weights * ys).sum(-1)], -1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.points(self.trunk(x)))
 
 
 class LinearHead(nn.Module):

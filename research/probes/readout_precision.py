@@ -66,13 +66,7 @@ class BothHead(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         early = self.trunk[: self.cut](x)
         late = self.trunk[self.cut:](early).flatten(1).float()
-        maps = self.keypoints.maps(early).float()
-        h, w = maps.shape[-2:]
-        weights = torch.softmax(maps.flatten(2) * self.keypoints.log_temperature.exp(), -1)
-        ys = torch.linspace(-1, 1, h, device=x.device).repeat_interleave(w)
-        xs = torch.linspace(-1, 1, w, device=x.device).repeat(h)
-        points = torch.cat([(weights * xs).sum(-1), (weights * ys).sum(-1)], -1)
-        return self.head(torch.cat([late, points], -1))
+        return self.head(torch.cat([late, self.keypoints.points(early)], -1))
 
 
 class CoordHead(nn.Module):
