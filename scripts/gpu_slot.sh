@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One short GPU slot: distil a student from a D collected elsewhere and measure its learning
 # curve. Starts from a carry folder (scripts/gpu_carry.py: D stripped of its images, the
-# teacher's weights, optionally the wheels a GPU image lacks), then
+# teacher's weights, optionally the wheels and GL loaders a GPU image lacks), then
+#   0. unpacks the carried GL loaders (CARRY/gl/*.deb, as root), without which EGL fails;
 #   1. installs twist (the carried wheels into /tmp when the image has no package index);
 #   2. rebuilds D's images from their stored physics and DR draws on every core
 #      (twist-data render --reproduce; frames drawn by another GL than the one that recorded
@@ -27,6 +28,15 @@ CARRY="${1:?usage: bash scripts/gpu_slot.sh CARRY [OUT]}"
 OUT="${2:-runs/slot}"
 CARRY="$(cd "$CARRY" && pwd)"
 cd "$(dirname "$0")/.."
+if compgen -G "$CARRY/gl/*.deb" >/dev/null && [[ "$(id -u)" == 0 ]]; then
+  # A CUDA image without libEGL: MuJoCo's EGL context fails ("'NoneType' object has no
+  # attribute 'eglQueryString'") until the carried loaders are unpacked and NVIDIA's vendor
+  # file is named.
+  for package in "$CARRY"/gl/*.deb; do dpkg -x "$package" /; done
+  ldconfig
+  vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+  if [[ -f "$vendor" ]]; then export __EGL_VENDOR_LIBRARY_FILENAMES="${__EGL_VENDOR_LIBRARY_FILENAMES:-$vendor}"; fi
+fi
 if command -v twist-distil >/dev/null 2>&1; then
   export MUJOCO_GL="${MUJOCO_GL:-egl}"
 elif [[ -d "$CARRY/wheels" ]]; then

@@ -78,3 +78,23 @@ def test_a_carry_over_the_limit_is_refused_and_removed(collected_tiny: Path,
     result = carry(collected_tiny, tmp_path / "carry", "--teacher", str(other))
     assert result.returncode == 2 and "learned 'cup-catch'" in result.stderr
     assert not (tmp_path / "carry").exists()
+
+
+def test_the_gl_loaders_travel_in_the_carry_and_count(collected_tiny: Path,
+                                                      tmp_path: Path) -> None:
+    loaders = tmp_path / "gl"
+    loaders.mkdir()
+    result = carry(collected_tiny, tmp_path / "carry", "--gl", str(loaders))
+    assert result.returncode == 2 and "holds no package (*.deb)" in result.stderr
+    assert not (tmp_path / "carry").exists()
+    package = bytes(range(256)) * 4096  # 1 MiB standing in for libegl1's package
+    (loaders / "libegl1_1.6.0-1_amd64.deb").write_bytes(package)
+    (loaders / "notes.txt").write_text("not a package")
+    result = carry(collected_tiny, tmp_path / "carry", "--gl", str(loaders))
+    assert result.returncode == 0, result.stderr
+    assert [p.name for p in (tmp_path / "carry" / "gl").iterdir()] == ["libegl1_1.6.0-1_amd64.deb"]
+    assert (tmp_path / "carry" / "gl" / "libegl1_1.6.0-1_amd64.deb").read_bytes() == package
+    sizes = dict(part.split("=") for part in result.stdout.split())
+    assert sizes["gl"] == "1.00MiB"
+    parts = ("tree", "dataset", "teacher", "wheels", "gl")
+    assert abs(sum(float(sizes[k][:-3]) for k in parts) - float(sizes["total"][:-3])) < 0.03
