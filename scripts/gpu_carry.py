@@ -91,7 +91,8 @@ def build_carry(dataset: Path, carry: Path, teacher: Path | None = None,
                 "the repository's tree and the carry come to "
                 f"{sizes['total'] / 2**20:.1f} MiB (tree {sizes['tree'] / 2**20:.1f}, dataset "
                 f"{sizes['dataset'] / 2**20:.1f}, teacher {sizes['teacher'] / 2**20:.1f}, "
-                f"wheels {sizes['wheels'] / 2**20:.1f}, GL {sizes['gl'] / 2**20:.1f}), over the limit of {limit_mib:g} MiB")
+                f"wheels {sizes['wheels'] / 2**20:.1f}, GL {sizes['gl'] / 2**20:.1f}), "
+                f"over the limit of {limit_mib:g} MiB")
     except BaseException:
         shutil.rmtree(carry, ignore_errors=True)
         raise
