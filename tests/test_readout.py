@@ -392,6 +392,20 @@ def test_the_readout_recipe_travels_with_the_run_and_the_bundle(inputs, tmp_path
     assert "read_error" in (tmp_path / "run" / "heldout.csv").read_text().splitlines()[0]
 
 
+def test_a_readout_trained_from_a_resident_copy_of_d_is_the_same_student(
+        inputs, tmp_path: Path) -> None:
+    dataset, teacher_path, _, _ = inputs
+    students = {}
+    for resident in ("off", "on"):
+        config = distil_preset("tiny", "readout", resident_data=resident, readout_mirror="augment")
+        summary = distil(dataset, tmp_path / resident, config, teacher=teacher_path)
+        students[resident] = load_student(summary.student)[0].state_dict()
+    frames = [pd.read_csv(tmp_path / r / "frame-metrics.csv") for r in ("off", "on")]
+    assert len(frames[0]) > 0 and frames[0]["loss"].equals(frames[1]["loss"])
+    for name, weight in students["off"].items():
+        assert torch.equal(students["on"][name], weight), name
+
+
 def test_a_readout_runs_agreement_curve_advances_with_its_single_frame_updates(
         inputs, tmp_path: Path) -> None:
     dataset, teacher_path, _, _ = inputs

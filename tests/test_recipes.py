@@ -148,6 +148,26 @@ def test_frame_batches_stack_the_steps_before_within_the_episode(
     assert checked_start > 0  # some rows did reach back past their episode's start
 
 
+def test_frame_batches_from_a_resident_copy_are_the_decoded_batches(
+        inputs: tuple[Path, Path, Teacher]) -> None:
+    from twist_data.sampler import resident_images
+
+    dataset, _, teacher = inputs
+    data = open_dataset(dataset)
+    targets = teacher_targets(teacher, data, np.arange(data.n_episodes))
+    images = resident_images(data)
+    copy = images.clone()
+    assert images.shape == (data.n_steps, data.spec.views, *data.spec.image_shape)
+    decoded = FrameBatches(data, targets, batch_size=32, frames=2, seed=3)
+    resident = FrameBatches(data, targets, batch_size=32, frames=2, seed=3, images=images)
+    for _ in range(3):
+        a, b = decoded.batch(), resident.batch()
+        assert a.keys() == b.keys()
+        assert all(torch.equal(a[k], b[k]) for k in a)
+        b["image"].zero_()  # a batch is the trainer's to change (mirroring) ...
+    assert torch.equal(images, copy)  # ... without touching the copy
+
+
 def test_gradients_reach_the_encoder_and_never_the_teacher(
         inputs: tuple[Path, Path, Teacher]) -> None:
     dataset, _, teacher = inputs

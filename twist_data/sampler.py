@@ -341,17 +341,7 @@ class ResidentWindows:
             if key == "image":
                 continue
             self.columns[key] = torch.as_tensor(data.column(key)).to(self.device)
-        self.images: torch.Tensor | None = None
-        if "image" in config.keys:
-            spec = data.spec
-            images = np.empty((data.n_steps, spec.views, *spec.image_shape), np.uint8)
-            chunk = np.empty((4096, *spec.image_shape), np.uint8)  # readers fill contiguous rows
-            for view in range(spec.views):
-                for lo in range(0, data.n_steps, len(chunk)):
-                    steps = np.arange(lo, min(lo + len(chunk), data.n_steps))
-                    data.read_frames(steps, np.full(steps.size, view), chunk[:steps.size])
-                    images[steps, view] = chunk[:steps.size]
-            self.images = torch.from_numpy(images).to(self.device)
+        self.images = resident_images(data, self.device) if "image" in config.keys else None
 
     def batch(self) -> dict[str, torch.Tensor]:
         """The next batch as tensors on the device, keys as :meth:`WindowSampler.batch`."""
@@ -373,6 +363,20 @@ class ResidentWindows:
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
         while True:
             yield self.batch()
+
+
+def resident_images(dataset: MatchingDataset, device: torch.device | str = "cpu") -> torch.Tensor:
+    """Every image of ``dataset`` decoded once -> uint8 [steps, views, H, W, 3] on ``device``
+    (``resident_bytes(dataset, ("image",))`` bytes)."""
+    spec = dataset.spec
+    images = np.empty((dataset.n_steps, spec.views, *spec.image_shape), np.uint8)
+    chunk = np.empty((4096, *spec.image_shape), np.uint8)  # readers fill contiguous rows
+    for view in range(spec.views):
+        for lo in range(0, dataset.n_steps, len(chunk)):
+            steps = np.arange(lo, min(lo + len(chunk), dataset.n_steps))
+            dataset.read_frames(steps, np.full(steps.size, view), chunk[:steps.size])
+            images[steps, view] = chunk[:steps.size]
+    return torch.from_numpy(images).to(device)
 
 
 def resident_bytes(dataset: MatchingDataset, keys: tuple[str, ...]) -> int:

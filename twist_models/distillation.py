@@ -120,8 +120,9 @@ class DistilCompute:
     workers: int = 1
     """DataLoader processes decoding windows (0: decode in the training process)."""
     resident_data: str = "auto"
-    """Gather training windows from a copy of D decoded once on the training device
-    (:class:`twist_data.sampler.ResidentWindows`, the same stream as ``workers=0``): ``on``,
+    """Gather training windows, and the first stage's frames, from a copy of D decoded once on
+    the training device (:class:`twist_data.sampler.ResidentWindows`, the same stream as
+    ``workers=0``; :class:`twist_models.frame_targets.FrameBatches`, the same batches): ``on``,
     ``off``, or ``auto``: on for a CUDA device where the copy takes at most half its free
     memory, off elsewhere (on a CPU the decode is a few percent of an update)."""
 

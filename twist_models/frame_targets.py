@@ -178,12 +178,17 @@ class FrameBatches:
     step of the episode repeated before its start, as :func:`~twist_models.perception.stack_frames`).
 
     A batch: ``image`` uint8 [B, frames, H, W, 3] (most recent first), ``state`` [B, S],
-    and from teacher targets ``deter`` [B, D] and ``sensitivity`` [B, S]."""
+    and from teacher targets ``deter`` [B, D] and ``sensitivity`` [B, S].
+
+    ``images``, D's images decoded once (:func:`twist_data.sampler.resident_images`), are
+    gathered from on their device instead of decoding each batch: the same rows and views
+    for the same seed, so the same batches."""
 
     def __init__(self, data: MatchingDataset, targets: FrameRows, batch_size: int,
-                 frames: int = 1, view: int | None = None, seed: int = 0) -> None:
+                 frames: int = 1, view: int | None = None, seed: int = 0,
+                 images: torch.Tensor | None = None) -> None:
         self.data, self.targets, self.batch_size = data, targets, batch_size
-        self.frames, self.view = frames, view
+        self.frames, self.view, self.images = frames, view, images
         self.rng = np.random.default_rng(seed)
         self._images = np.empty((batch_size * frames, *data.spec.image_shape), np.uint8)
 
@@ -194,10 +199,17 @@ class FrameBatches:
                  else self.rng.integers(0, self.data.spec.views, b))
         back = np.arange(self.frames)
         steps = np.maximum(t.steps[rows][:, None] - back, t.episode_start[rows][:, None])
-        self.data.read_frames(steps.reshape(-1), np.repeat(views, self.frames), self._images)
-        image = torch.from_numpy(self._images.reshape(b, self.frames, *self._images.shape[1:]))
+        shape = (b, self.frames, *self._images.shape[1:])
+        if self.images is not None:
+            device = self.images.device
+            image = self.images[torch.as_tensor(steps.reshape(-1), device=device),
+                                torch.as_tensor(np.repeat(views, self.frames), device=device)]
+            image = image.reshape(shape)
+        else:
+            self.data.read_frames(steps.reshape(-1), np.repeat(views, self.frames), self._images)
+            image = torch.from_numpy(self._images.reshape(shape)).clone()
         index = torch.as_tensor(rows)
-        batch = {"image": image.clone(), "state": t.state[index]}
+        batch = {"image": image, "state": t.state[index]}
         if isinstance(t, TeacherTargets):
             batch.update(deter=t.deter[index], sensitivity=t.sensitivity[index])
         return batch

@@ -43,6 +43,7 @@ from twist_data.sampler import (
     heldout_episodes,
     image_problem,
     resident_bytes,
+    resident_images,
     window_problem,
 )
 from twist_data.seeding import derived_seed
@@ -446,7 +447,8 @@ class Distiller:
         return iter(loader)
 
     def _resident(self, keys: tuple[str, ...]) -> bool:
-        """Whether training windows come from a copy of D on the device (``resident_data``)."""
+        """Whether training windows or frames come from a copy of D on the device
+        (``resident_data``)."""
         choice = self.config.compute.resident_data
         if choice != "auto":
             return choice == "on"
@@ -454,7 +456,7 @@ class Distiller:
             return False
         free, _ = torch.cuda.mem_get_info(self.device)
         need = resident_bytes(self.data, keys)
-        log.info("D's windows need %.2f GiB on %s, %.2f GiB free", need / 2**30, self.device,
+        log.info("D's copy needs %.2f GiB on %s, %.2f GiB free", need / 2**30, self.device,
                  free / 2**30)
         return need <= free / 2
 
@@ -586,25 +588,26 @@ class Distiller:
         """The first stage: the per-frame terms alone on single training frames, for
         ``frame_steps`` updates; resumable at its evaluation points."""
         c = self.config
+        images = resident_images(self.data, self.device) if self._resident(("image",)) else None
         batches = FrameBatches(self.data, self.rows, c.frame_batch, c.frames, c.view,
-                               seed=derived_seed(c.seed, 7, self.frame_updates, self.rank))
+                               seed=derived_seed(c.seed, 7, self.frame_updates, self.rank),
+                               images=images)
         params = [p for p in self.student.parameters() if p.requires_grad]
         flips = torch.Generator().manual_seed(derived_seed(c.seed, 9, self.frame_updates,
                                                            self.rank))
-        mirror = (torch.tensor(_mirror(self.data)) if _mirror_mode(c, self.data) == "augment"
-                  else None)
-        sums: dict[str, float] = {}
+        mirror = (torch.tensor(_mirror(self.data), device=self.device)
+                  if _mirror_mode(c, self.data) == "augment" else None)
+        sums: dict[str, torch.Tensor | float] = {}
         done, spent, wall = 0, 0.0, time.perf_counter()
         log.info("frame stage: %d updates of %d frames", c.frame_steps - self.frame_updates,
                  c.frame_batch)
         while self.frame_updates < c.frame_steps and not self._out_of_time():
             tick = time.perf_counter()
-            batch = batches.batch()
+            batch = {k: v.to(self.device, non_blocking=True) for k, v in batches.batch().items()}
             if mirror is not None:  # each frame mirrored with probability 1/2, with its state
-                flip = torch.rand(len(batch["state"]), generator=flips) < 0.5
+                flip = (torch.rand(len(batch["state"]), generator=flips) < 0.5).to(self.device)
                 batch["image"][flip] = batch["image"][flip].flip(-2)
                 batch["state"][flip] = batch["state"][flip] * mirror
-            batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
             with precision_autocast(c.compute.precision, self.device):  # most recent frame first:
                 embed = self.student.perception.encoder(batch["image"]).flatten(1).float()
             if self.student.perception.readout is not None:
@@ -625,16 +628,20 @@ class Distiller:
             grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
             self.optimiser.step()
             for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
-                sums[key] = sums.get(key, 0.0) + float(value.detach())
+                # kept on the device: a read-back per update would stall a GPU's queue
+                sums[key] = sums.get(key, 0.0) + value.detach().float()
             spent += time.perf_counter() - tick
             done += 1
             self.frame_updates += 1
             if (self.frame_updates % c.schedule.frame_eval_every == 0
                     or self.frame_updates == c.frame_steps or self._out_of_time()):
+                synced = time.perf_counter()
+                means = {k: float(v) / done for k, v in sums.items()}  # waits for the device
                 now = time.perf_counter()
+                spent += now - synced
                 self.seconds, wall = self.seconds + now - wall, now
                 row = {"frame_updates": self.frame_updates, "wall_s": round(self.seconds, 2),
-                       "updates_per_s": done / spent, **{k: v / done for k, v in sums.items()}}
+                       "updates_per_s": done / spent, **means}
                 heldout = self.evaluate(plot=_plots_at(self.frame_updates, c.schedule.frame_eval_every,
                                                        c.frame_steps))
                 if self.writes:
