@@ -11,17 +11,22 @@
 #      keeping a deployable snapshot every SNAPSHOT_EVERY updates;
 #   4. evaluates every snapshot, the teacher and the zero floor on EVAL_EPISODES held-out
 #      episodes (twist-eval --snapshots: curve.csv, curve.png);
-#   5. copies six result files to RESULTS (a slot returns at most eight; a log may be the
-#      seventh): slot.json (stage seconds, the rebuild's report, the distiller's summary),
-#      metrics.csv, heldout.csv, curve.csv, curve.png, episodes.csv.
+#   5. with FACTORS, evaluates the final student under each of those DR presets too
+#      (twist-eval --dr FACTORS: factors.csv);
+#   6. copies its result files to RESULTS (a slot returns at most eight): slot.json (stage
+#      seconds, the rebuild's report, the distiller's summary), the distiller's metrics.csv
+#      (window updates) and frame-metrics.csv (a first stage's), heldout.csv, curve.csv,
+#      curve.png, episodes.csv, and factors.csv with FACTORS.
 # Every stage resumes where it stopped: the same command in a later slot continues the run.
 #
 #   bash scripts/gpu_slot.sh CARRY [OUT]      # OUT defaults to runs/slot
 #
-# Settings (environment): DEVICE (cuda), PRESET (quick), RECIPE (paper), STEPS (12000),
+# Settings (environment): DEVICE (cuda), PRESET (quick), RECIPE (paper), STEPS (window
+# updates: 12000; with RECIPE=readout the preset's, which trains on single frames alone),
 # SNAPSHOT_EVERY (2000), DISTIL_SECONDS (420), EVAL_EPISODES (10), WORKERS (processes that
 # rebuild D: the cores), COMPILE (true on CUDA, false elsewhere), RESULTS ($OUT/results),
-# DISTIL_SET (space-separated KEY=VALUE settings passed on as --set).
+# DISTIL_SET (space-separated KEY=VALUE settings passed on as --set, e.g. frame_steps=20000),
+# FACTORS (comma-separated DR presets, e.g. heldout,heldout-camera,heldout-full; none).
 # PRESET=tiny DEVICE=cpu runs it at test sizes in seconds (tests/test_gpu_slot.py does).
 set -euo pipefail
 CARRY="${1:?usage: bash scripts/gpu_slot.sh CARRY [OUT]}"
@@ -50,7 +55,7 @@ fi
 DEVICE="${DEVICE:-cuda}"
 PRESET="${PRESET:-quick}"
 RECIPE="${RECIPE:-paper}"
-STEPS="${STEPS:-12000}"
+STEPS="${STEPS:-$([[ "$RECIPE" == readout ]] || echo 12000)}"
 SNAPSHOT_EVERY="${SNAPSHOT_EVERY:-2000}"
 EVAL_EPISODES="${EVAL_EPISODES:-10}"
 RESULTS="${RESULTS:-$OUT/results}"
@@ -69,7 +74,7 @@ RESUME=()
 if [[ -f "$OUT/student/config.json" ]]; then RESUME=(--resume); fi
 stage distil twist-distil --dataset "$OUT/dataset" --teacher "$CARRY/teacher.pt" \
       --out "$OUT/student" --preset "$PRESET" --recipe "$RECIPE" --device "$DEVICE" \
-      --steps "$STEPS" --time-limit "${DISTIL_SECONDS:-420}" --quiet "${SETTINGS[@]}" \
+      ${STEPS:+--steps "$STEPS"} --time-limit "${DISTIL_SECONDS:-420}" --quiet "${SETTINGS[@]}" \
       "${RESUME[@]}" > "$OUT/distil-summary.json"
 
 EVAL=(--episodes "$EVAL_EPISODES" --batch "$EVAL_EPISODES")
@@ -77,12 +82,19 @@ if [[ "$PRESET" == tiny ]]; then EVAL+=(--max-steps 20); fi
 if [[ -f "$OUT/curve/episodes.csv" ]]; then EVAL+=(--resume); fi
 stage curve twist-eval --snapshots "$OUT/student" --teacher "$CARRY/teacher.pt" --dr heldout \
       --device "$DEVICE" --out "$OUT/curve" --quiet "${EVAL[@]}" > /dev/null
+if [[ -n "${FACTORS:-}" ]]; then
+  FACTOR_EVAL=(--episodes "$EVAL_EPISODES" --batch "$EVAL_EPISODES")
+  if [[ "$PRESET" == tiny ]]; then FACTOR_EVAL+=(--max-steps 20); fi
+  if [[ -f "$OUT/factors/factors.csv" ]]; then FACTOR_EVAL+=(--resume); fi
+  stage factors twist-eval --agent "student=$OUT/student/agent.pt" --dr "$FACTORS" \
+        --device "$DEVICE" --out "$OUT/factors" --quiet "${FACTOR_EVAL[@]}" > /dev/null
+fi
 
 write_timings "$OUT/timings.json" "preset=$PRESET" "recipe=$RECIPE" "device=$DEVICE" \
   "updates=$(python -c 'import json, sys; print(json.load(sys.stdin)["updates"])' \
              < "$OUT/distil-summary.json")"
 # One JSON of the slot (stage seconds, the rebuild's report, the distiller's summary) and the
-# five tables and plot: six files, leaving room for a log among the eight a slot returns.
+# tables and plot: at most eight files, the most a slot returns.
 python - "$OUT" <<'PY'
 import json, pathlib, sys
 out = pathlib.Path(sys.argv[1])
@@ -92,7 +104,10 @@ slot = {name: json.loads(path.read_text()) for name, path in parts.items() if pa
 (out / "slot.json").write_text(json.dumps(slot, indent=2))
 PY
 mkdir -p "$RESULTS"
-cp "$OUT/slot.json" "$OUT/student/metrics.csv" "$OUT/student/heldout.csv" \
-   "$OUT/curve/curve.csv" "$OUT/curve/curve.png" "$OUT/curve/episodes.csv" "$RESULTS/"
+cp "$OUT/slot.json" "$OUT/student/heldout.csv" "$OUT/curve/curve.csv" "$OUT/curve/curve.png" \
+   "$OUT/curve/episodes.csv" "$RESULTS/"
+for table in "$OUT/student/metrics.csv" "$OUT/student/frame-metrics.csv" "$OUT/factors/factors.csv"; do
+  if [[ -f "$table" ]]; then cp "$table" "$RESULTS/"; fi
+done
 cat "$OUT/timings.json"
 echo "slot done: results in $RESULTS"

@@ -58,6 +58,30 @@ def test_the_slot_runs_from_a_carry_and_resumes(collected_tiny: Path, tmp_path: 
     assert len(pd.read_csv(out / "curve" / "episodes.csv")) == 8
 
 
+def test_a_readout_slot_trains_on_frames_alone_and_evaluates_each_factor(
+        collected_tiny: Path, tmp_path: Path) -> None:
+    assert carry(collected_tiny, tmp_path / "carry").returncode == 0
+    out = tmp_path / "slot"
+    result = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_slot.sh"), str(tmp_path / "carry"),
+                             str(out)],
+                            env={**os.environ, "TWIST_VENV": sys.prefix, "PRESET": "tiny",
+                                 "DEVICE": "cpu", "RECIPE": "readout", "EVAL_EPISODES": "2",
+                                 "WORKERS": "2", "FACTORS": "heldout,heldout-camera"},
+                            capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = sorted(p.name for p in (out / "results").iterdir())
+    assert results == ["curve.csv", "curve.png", "episodes.csv", "factors.csv",
+                       "frame-metrics.csv", "heldout.csv", "slot.json"]
+    from twist_models.distillation import distil_preset
+
+    frames = pd.read_csv(out / "results" / "frame-metrics.csv")
+    assert frames["frame_updates"].iloc[-1] == distil_preset("tiny", "readout").frame_steps
+    assert json.loads((out / "results" / "slot.json").read_text())["distil"]["updates"] == 0
+    factors = pd.read_csv(out / "results" / "factors.csv")
+    assert list(factors["dr"]) == ["heldout", "heldout-camera"]
+    assert set(factors["agent"]) == {"student"} and (factors["episodes"] == 2).all()
+
+
 def test_a_carry_over_the_limit_is_refused_and_removed(collected_tiny: Path,
                                                        tmp_path: Path) -> None:
     result = carry(collected_tiny, tmp_path / "carry", "--limit-mib", "0.5")
