@@ -71,14 +71,11 @@ def build_carry(dataset: Path, carry: Path, teacher: Path | None = None,
     try:
         strip_dataset(dataset, carry / "dataset")
         weights_only(source_teacher, carry / "teacher.pt")
-        if wheels is not None:
-            (carry / "wheels").mkdir()
-            for wheel in sorted(wheels.glob("*.whl")):
-                shutil.copy2(wheel, carry / "wheels" / wheel.name)
-        if gl is not None:
-            (carry / "gl").mkdir()
-            for package in sorted(gl.glob("*.deb")):
-                shutil.copy2(package, carry / "gl" / package.name)
+        for source, name, pattern in ((wheels, "wheels", "*.whl"), (gl, "gl", "*.deb")):
+            if source is not None:
+                (carry / name).mkdir()
+                for path in sorted(source.glob(pattern)):
+                    shutil.copy2(path, carry / name / path.name)
         sizes = {"dataset": folder_bytes(carry / "dataset"),
                  "teacher": (carry / "teacher.pt").stat().st_size,
                  "wheels": folder_bytes(carry / "wheels") if wheels is not None else 0,
