@@ -8,7 +8,11 @@ ones (every read component within ``ReadOutStage.typical_spreads`` of its median
 ``read_error`` and ``read_error_typical`` do on its own held-out windows, but on one set of
 frames for all agents.
 
-Prints one JSON line: {"AGENT on DATASET": [error, typical error]}. ``python
+Prints one JSON line: {"AGENT on DATASET": [error, typical error]}; with ``--components``,
+each value also lists the typical frames' RMS error per read slot in the state's units (an
+angle pair's sine slot holds its angle's error in radians, its cosine slot the pair's length;
+comparable across Ds, whose spreads differ): which of the
+things a frame shows a moved camera makes the student misread. ``python
 research/probes/readout_camera_errors.py --dataset runs/c0/dataset --dataset runs/c0/dataset-full
 --agent wide=runs/c0/ro/agent.pt --agent full=runs/c0/ro-full/agent.pt [--frames 2048]``
 """
@@ -48,13 +52,20 @@ def heldout_frames(dataset: str, frames: int, seed: int, every: int = 10
 
 
 @torch.no_grad()
-def read_errors(agent: Agent, images: np.ndarray, states: torch.Tensor) -> tuple[float, float]:
-    """The agent's read-out error over every frame and over the typical ones."""
+def read_errors(agent: Agent, images: np.ndarray, states: torch.Tensor
+                ) -> tuple[float, float, list[float]]:
+    """The agent's read-out error over every frame and over the typical ones (D's spreads),
+    and the typical ones' RMS error per read slot (the state's units)."""
     student = agent.student.eval()
     features = torch.cat([student.perception.encoder(torch.as_tensor(images[i:i + CHUNK])).flatten(1).float()
                           for i in range(0, len(images), CHUNK)])
-    return (student.perception.readout.error(features, states),
-            student.perception.readout.error(features, states, ReadOutStage().typical_spreads))
+    readout = student.perception.readout
+    spreads = ReadOutStage().typical_spreads
+    errors = readout.errors(readout.read(features), states)
+    read = states[:, list(readout.config.read)]
+    typical = ((read - readout.mean).abs() <= spreads * readout.scale).all(-1)
+    per_slot = (errors[typical].pow(2).mean(0).sqrt() * readout.scale).tolist()
+    return (readout.error(features, states), readout.error(features, states, spreads), per_slot)
 
 
 def main() -> None:
@@ -63,6 +74,7 @@ def main() -> None:
     parser.add_argument("--agent", action="append", required=True, help="NAME=agent.pt")
     parser.add_argument("--frames", type=int, default=2048)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--components", action="store_true", help="also the error per read slot")
     args = parser.parse_args()
     agents = {}
     for spec in args.agent:
@@ -72,8 +84,10 @@ def main() -> None:
     for dataset in args.dataset:
         images, states = heldout_frames(dataset, args.frames, args.seed)
         for name, agent in agents.items():
-            error, typical = read_errors(agent, images, states)
-            out[f"{name} on {Path(dataset).name}"] = [round(error, 3), round(typical, 3)]
+            error, typical, per_slot = read_errors(agent, images, states)
+            row = [round(error, 3), round(typical, 3)]
+            out[f"{name} on {Path(dataset).name}"] = row + (
+                [[round(v, 3) for v in per_slot]] if args.components else [])
     print(json.dumps(out))
 
 
