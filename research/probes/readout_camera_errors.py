@@ -30,6 +30,7 @@ from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.agent import Agent
 from twist_models.distillation import ReadOutStage
+from twist_models.readout import typical as typical_rows
 
 #: Frames per pass of the CNN.
 CHUNK = 256
@@ -62,9 +63,8 @@ def read_errors(agent: Agent, images: np.ndarray, states: torch.Tensor
     readout = student.perception.readout
     spreads = ReadOutStage().typical_spreads
     errors = readout.errors(readout.read(features), states)
-    read = states[:, list(readout.config.read)]
-    typical = ((read - readout.mean).abs() <= spreads * readout.scale).all(-1)
-    per_slot = (errors[typical].pow(2).mean(0).sqrt() * readout.scale).tolist()
+    rows = typical_rows(states, readout.config, readout.mean, readout.scale, spreads)
+    per_slot = (errors[rows].pow(2).mean(0).sqrt() * readout.scale).tolist()
     return (readout.error(features, states), readout.error(features, states, spreads), per_slot)
 
 
