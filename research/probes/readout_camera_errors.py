@@ -10,9 +10,8 @@ frames for all agents.
 
 Prints one JSON line: {"AGENT on DATASET": [error, typical error]}; with ``--components``,
 each value also lists the typical frames' RMS error per read slot in the state's units (an
-angle pair's sine slot holds its angle's error in radians, its cosine slot the pair's length;
-comparable across Ds, whose spreads differ): which of the
-things a frame shows a moved camera makes the student misread. ``python
+angle pair's sine slot holds its angle's error in radians, its cosine slot the pair's length),
+comparable across Ds, whose spreads differ. ``python
 research/probes/readout_camera_errors.py --dataset runs/c0/dataset --dataset runs/c0/dataset-full
 --agent wide=runs/c0/ro/agent.pt --agent full=runs/c0/ro-full/agent.pt [--frames 2048]``
 """
@@ -64,8 +63,10 @@ def read_errors(agent: Agent, images: np.ndarray, states: torch.Tensor
     spreads = ReadOutStage().typical_spreads
     errors = readout.errors(readout.read(features), states)
     rows = typical_rows(states, readout.config, readout.mean, readout.scale, spreads)
-    per_slot = (errors[rows].pow(2).mean(0).sqrt() * readout.scale).tolist()
-    return (readout.error(features, states), readout.error(features, states, spreads), per_slot)
+    typical = errors[rows].pow(2)
+    return (float(errors.pow(2).mean().sqrt()),
+            float(typical.mean().sqrt()) if typical.numel() else float("nan"),
+            (typical.mean(0).sqrt() * readout.scale).tolist())
 
 
 def main() -> None:
