@@ -52,11 +52,12 @@ CONDITIONS = {"roll": ((0, 0, 1), False), "yaw": ((0, 1, 0), False),
               "pitch": ((1, 0, 0), False), "shift": ((0, 0, 0), True), "all": ((1, 1, 1), True)}
 
 
-def keep_only(task: str, turn_mask: tuple[int, int, int],
+def keep_only(axes: np.ndarray, turn_mask: tuple[int, int, int],
               shift: bool) -> contextlib.AbstractContextManager:
-    """Within the block, every DR draw keeps the masked parts of its camera turn (in camera
-    axes) and its shift or not; the random stream, and so every other draw, is unchanged."""
-    axes, draw = camera_axes(task), DRSampler._draw
+    """Within the block, every DR draw keeps the masked parts of its camera turn (in the
+    camera's ``axes``, :func:`camera_axes`) and its shift or not; the random stream, and so
+    every other draw, is unchanged."""
+    draw = DRSampler._draw
     mask = np.asarray(turn_mask, np.float64)
 
     def masked(sampler: DRSampler) -> dict[str, np.ndarray]:
@@ -74,6 +75,7 @@ def intervene(name: str, path: str, episodes: int, seed: int) -> list[dict]:
     """The agent under ``heldout`` and under each camera part alone, paired per episode."""
     agent = load_agent(path)
     task = agent.task
+    axes = camera_axes(task)
 
     def returns(dr: str) -> np.ndarray:
         config = EvalConfig(task=task, dr=dr, episodes=episodes, action_repeat=agent.action_repeat)
@@ -81,7 +83,7 @@ def intervene(name: str, path: str, episodes: int, seed: int) -> list[dict]:
 
     plain, out = returns("heldout"), []
     for condition, (turn_mask, shift) in CONDITIONS.items():
-        with keep_only(task, turn_mask, shift):
+        with keep_only(axes, turn_mask, shift):
             moved = returns("heldout-camera")
         difference = moved - plain
         out.append({"agent": name, "condition": condition, "episodes": episodes,
