@@ -350,7 +350,8 @@ class Distiller:
             self.seconds = float(checkpoint.extra.get("seconds", 0.0))
             self.heldout_first = checkpoint.extra.get("heldout_first", {})
             torch.set_rng_state(torch.tensor(checkpoint.extra["torch_rng"], dtype=torch.uint8))
-            log.info("resumed the student at update %d from %s", self.updates, latest)
+            log.info("resumed the student at %d frame updates and %d window updates from %s",
+                     self.frame_updates, self.updates, latest)
             if self.updates > 0 and self.frame_updates < config.frame_steps:
                 raise DistilError(
                     f"the run's first stage ended at {self.frame_updates} frame updates and "
@@ -599,8 +600,8 @@ class Distiller:
                   if _mirror_mode(c, self.data) == "augment" else None)
         sums: dict[str, torch.Tensor | float] = {}
         done, spent, wall = 0, 0.0, time.perf_counter()
-        log.info("frame stage: %d updates of %d frames", c.frame_steps - self.frame_updates,
-                 c.frame_batch)
+        log.info("frame stage: %d of %d updates of %d frames to go", c.frame_steps - self.frame_updates,
+                 c.frame_steps, c.frame_batch)
         while self.frame_updates < c.frame_steps and not self._out_of_time():
             tick = time.perf_counter()
             batch = {k: v.to(self.device, non_blocking=True) for k, v in batches.batch().items()}
