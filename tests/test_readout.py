@@ -426,11 +426,18 @@ def test_a_readout_runs_agreement_curve_advances_with_its_single_frame_updates(
 def test_a_resumed_first_stage_grows_to_the_new_frame_steps(inputs, tmp_path: Path) -> None:
     dataset, teacher_path, _, _ = inputs
     config = distil_preset("tiny", "readout", frame_eval_every=2)
-    distil(dataset, tmp_path / "run", config, teacher=teacher_path)
+    first = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
     longer = dataclasses.replace(config, frame_steps=8)
     summary = distil(dataset, tmp_path / "run", longer, teacher=teacher_path, resume=True)
-    logged = (tmp_path / "run" / "frame-metrics.csv").read_text().splitlines()[1:]
-    assert [int(row.split(",")[0]) for row in logged] == [2, 4, 6, 8]
+    logged = pd.read_csv(tmp_path / "run" / "frame-metrics.csv")
+    assert list(logged["frame_updates"]) == [2, 4, 6, 8]
+    # Each invocation's rate is over its own updates alone: two rows of 2 updates each.
+    rates = logged["updates_per_s"].to_numpy()
+    assert first.frame_updates_per_second == pytest.approx(4 / (2 / rates[0] + 2 / rates[1]),
+                                                           rel=1e-2)
+    assert summary.frame_updates_per_second == pytest.approx(4 / (2 / rates[2] + 2 / rates[3]),
+                                                             rel=1e-2)
+    assert summary.updates_per_second == 0.0  # the read-out recipe trains on no windows
     assert Agent.load(summary.agent).info["frame_updates"] == 8
     assert stored_config(tmp_path / "run") == longer
     # Once windows have followed the first stage, it cannot grow any more.

@@ -160,6 +160,9 @@ class DistilSummary:
     """``done`` (every update the config asks for) or ``time limit`` (resumable)."""
     frame_updates: int = 0
     """Single-frame updates of a first stage (:attr:`DistilConfig.frame_steps`)."""
+    frame_updates_per_second: float = 0.0
+    """Single-frame updates per second of training time since this invocation started (0
+    where it ran none)."""
 
     def to_json(self) -> dict[str, Any]:
         return {k: str(v) if isinstance(v, Path) else v
@@ -375,6 +378,7 @@ class Distiller:
         if config.freeze_dynamics:
             freeze_dynamics(self.student)
         self.student.to(device)
+        self._frame_timing = [0, 0.0]  # this invocation's single-frame updates, training seconds
         move_optimiser_state(self.optimiser, device)
         self.targets = self._teacher_targets() if config.needs_teacher_targets else None
         # What the first stage draws frames from: the teacher's targets, or for a read-out
@@ -577,7 +581,9 @@ class Distiller:
             data_wait_share=round(run["wait"] / run["train"], 4) if run["done"] else 0.0,
             heldout_first=self.heldout_first, heldout_last=self.heldout_last,
             stopped="time limit" if stopped_early else "done",
-            frame_updates=self.frame_updates)
+            frame_updates=self.frame_updates,
+            frame_updates_per_second=(round(self._frame_timing[0] / self._frame_timing[1], 3)
+                                      if self._frame_timing[0] else 0.0))
         if summary.stopped != "done":
             log.info("stopped at the time limit after %d single-frame and %d window updates; "
                      "--resume continues", self.frame_updates, self.updates)
@@ -651,6 +657,7 @@ class Distiller:
                     on_progress(Progress(self.frame_updates, c.frame_steps + c.steps,
                                          row["updates_per_s"], 0.0, row["loss"],
                                          heldout["h_mse"]))
+                self._frame_timing = [self._frame_timing[0] + done, self._frame_timing[1] + spent]
                 sums, done, spent = {}, 0, 0.0
                 self._checkpoint(self.run_folder.latest)
         self.seconds += time.perf_counter() - wall
