@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from twist_models.config import PRESETS, CNNConfig
+from twist_models.device import precision_autocast
 from twist_models.distillation import ReadOutStage, distil_preset
 from twist_models.losses import readout_loss
 from twist_models.networks import ImageEncoder
@@ -170,7 +171,8 @@ def main() -> None:
         start = time.perf_counter()
         for update in range(1, args.updates + 1):
             rows = train_rows[draw.integers(0, train_rows.size, BATCH)]
-            with torch.autocast("cpu", dtype=torch.bfloat16):
+            # As the recipe runs: float32 on a CPU (compute.precision=auto).
+            with precision_autocast("auto", torch.device("cpu")):
                 out = model(images_in(torch.from_numpy(train[rows])))
             loss = readout_loss(out.float() - (target[rows] - centre) / spread,
                                 ReadOutStage().huber_delta)
