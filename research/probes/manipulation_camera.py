@@ -48,7 +48,7 @@ from twist_sim.tasks import TaskEnv
 
 sys.path.insert(0, str(Path(__file__).parent))
 from readout_heads import LinearHead, images_in
-from scripted_manipulation import GAIN, REPEAT, _lift_waypoints, _push_waypoints
+from scripted_manipulation import BUDGETS, GAIN, REPEAT, WAYPOINTS
 
 #: The position block's components per task, for the printout.
 NAMES = {"panda-push": ("tip_x", "tip_y", "tip_z", "block_x", "block_y", "block_z",
@@ -82,8 +82,7 @@ def scripted_states(task: str, episodes: int, seed: int) -> tuple[list[np.ndarra
     """Physics vectors, states [N, S] and episode indices [N] of noisy controller episodes."""
     env = TaskEnv(task, REPEAT)
     rng = np.random.default_rng(seed)
-    waypoints = _lift_waypoints if task == "panda-lift" else _push_waypoints
-    budgets = (25, 15, 10, 10**6) if task == "panda-lift" else (30, 15, 10**6)
+    waypoints, budgets = WAYPOINTS[task], BUDGETS[task]
     physics, states, index = [], [], []
     for episode in range(episodes):
         step = env.reset(seed=int(rng.integers(2**31)))

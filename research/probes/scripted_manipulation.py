@@ -49,13 +49,17 @@ def _lift_waypoints(state: np.ndarray) -> Iterator[tuple[np.ndarray, float | Non
     yield np.r_[block[:2], block[2] + 0.2], -1.0
 
 
+#: Per task: its waypoints from the first state, and the steps each is held (the last to the
+#: episode's end).
+WAYPOINTS = {"panda-push": _push_waypoints, "panda-lift": _lift_waypoints}
+BUDGETS = {"panda-push": (30, 15, 10**6), "panda-lift": (25, 15, 10, 10**6)}
+
+
 def run_episode(env: TaskEnv, seed: int) -> tuple[float, bool, int]:
     """(return, success at the end, first agent step that counts as solved, or -1)."""
-    lift = env.name == "panda-lift"
     step = env.reset(seed=seed)
-    waypoints = (_lift_waypoints if lift else _push_waypoints)(step.state)
-    # Steps per waypoint: a waypoint is held until the next one's turn, the last to the end.
-    budgets = (25, 15, 10, 10**6) if lift else (30, 15, 10**6)
+    waypoints = WAYPOINTS[env.name](step.state)
+    budgets = BUDGETS[env.name]
     total, solved, t = 0.0, -1, 0
     for (target, grip), budget in zip(waypoints, budgets, strict=False):
         for _ in range(budget):
