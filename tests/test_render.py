@@ -13,7 +13,12 @@ import numpy as np
 import pytest
 
 from tests.conftest import run_command
-from twist_data.errors import BackgroundError, ConfigError, PhysicsStateError
+from twist_data.errors import (
+    BackgroundError,
+    ConfigError,
+    PhysicsStateError,
+    SchemaMismatchError,
+)
 from twist_data.reader import open_dataset
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
@@ -612,6 +617,33 @@ def test_reproduction_detects_tampered_parameters(sim_dataset: Path, tmp_path: P
     light[3] = light[3] * 0.5
     problems = check_reproduction(open_dataset(copy), n_steps=26)
     assert problems and all(p.startswith("step 3 view") for p in problems)
+
+
+def test_a_dataset_from_another_camera_pose_is_not_re_rendered(sim_dataset: Path,
+                                                              tmp_path: Path) -> None:
+    import shutil
+
+    import zarr
+
+    ds = open_dataset(sim_dataset)
+    [block] = render_blocks(ds.spec)
+    env = TaskEnv(ds.spec.task, seed=0)
+    camera = block["camera"]
+    assert block["camera_pose"] == {"pos": env.model.cam_pos[camera].tolist(),
+                                    "quat": env.model.cam_quat[camera].tolist(),
+                                    "fovy": float(env.model.cam_fovy[camera])}
+    copy = tmp_path / "copy"
+    shutil.copytree(sim_dataset, copy)
+    group = zarr.open_group(str(copy / "collector-000.zarr"), mode="r+")
+    meta = dict(group.attrs["twist"])
+    spec = dict(meta["spec"])
+    pose = block["camera_pose"]
+    moved = {**block, "camera_pose": {**pose, "fovy": pose["fovy"] + 5}}
+    spec["extra"] = {**spec["extra"], "render": [moved]}
+    meta["spec"] = spec
+    group.attrs["twist"] = meta
+    with pytest.raises(SchemaMismatchError, match=r"views 0-2 were rendered from camera pose .*fovy"):
+        check_reproduction(open_dataset(copy), n_steps=4)
 
 
 def test_rerender_cli_errors_leave_no_output(small_dataset: Path, tmp_path: Path) -> None:

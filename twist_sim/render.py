@@ -57,6 +57,14 @@ def load_task_model(spec: TaskSpec):
     return load_environment(spec).physics.model.ptr
 
 
+def camera_pose(model: Any, camera: int) -> dict[str, Any]:
+    """Where a model's ``camera`` sits on its body (position, quaternion) and its vertical
+    field of view in degrees: what a render block records, so that frames are never
+    re-rendered from a scene whose camera has since moved."""
+    return {"pos": model.cam_pos[camera].tolist(), "quat": model.cam_quat[camera].tolist(),
+            "fovy": float(model.cam_fovy[camera])}
+
+
 def background_bank(config: DRConfig, texture_size: int) -> BackgroundBank | None:
     """The bank a config draws backgrounds from (``None`` for ``background="none"``)."""
     if config.background == "none":
@@ -206,6 +214,7 @@ class DRRenderer:
         return {"views": [first_view, first_view + self.views],
                 "config": self.config.to_json(), "image_size": self.image_size,
                 "supersample": self.supersample, "camera": self.spec.camera,
+                "camera_pose": camera_pose(self.model, self.spec.camera),
                 "slices": RENDER_SLICES, "stacks": RENDER_STACKS, "bank": bank}
 
     def gl_info(self) -> dict[str, str]:

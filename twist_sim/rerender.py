@@ -32,7 +32,7 @@ from twist_data.staging import built_aside, require_new_folder
 from twist_data.storage import StorageLayout
 from twist_data.writer import ShardWriter
 from twist_sim.randomisation import VIEW_PARAMS, DRConfig, stack_view_params
-from twist_sim.render import DRRenderer, background_bank
+from twist_sim.render import DRRenderer, background_bank, camera_pose
 from twist_sim.rollout import library_versions
 from twist_sim.tasks import task_spec
 
@@ -52,8 +52,16 @@ def renderer_for_block(task: str, block: Mapping[str, Any]) -> DRRenderer:
     """A renderer that reproduces the views of one provenance block exactly."""
     check_bank(block)
     start, stop = block["views"]
-    return DRRenderer(task, DRConfig.from_json(block["config"]), int(block["image_size"]),
-                      views=int(stop) - int(start), supersample=int(block["supersample"]))
+    renderer = DRRenderer(task, DRConfig.from_json(block["config"]), int(block["image_size"]),
+                          views=int(stop) - int(start), supersample=int(block["supersample"]))
+    recorded = block.get("camera_pose")  # absent in datasets rendered before it was recorded
+    current = camera_pose(renderer.model, renderer.spec.camera)
+    if recorded is not None and recorded != current:
+        renderer.close()
+        raise SchemaMismatchError(
+            f"views {start}-{stop} were rendered from camera pose {recorded} but task {task!r} "
+            f"now renders from {current}; re-rendering them would not reproduce the dataset")
+    return renderer
 
 
 def check_bank(block: Mapping[str, Any]) -> None:
