@@ -13,8 +13,9 @@ on the true state (the baseline measured in the same run):
   std ``SIGMA`` (the state's units) on every position before the derivation: a CNN's
   read error, which the difference amplifies.
 
-It also prints, offline over D's training steps, how well each derived velocity matches the
-true one (RMSE, and the share of the true velocity's variance it explains).
+It also prints how well each derived velocity matches the true one (RMSE, and the share of
+the true velocity's variance it explains), offline over D's training steps and along the
+teacher's own evaluated episodes under ``--dr``.
 
 ``--order 2`` (beside ``--order 1``) derives each velocity from three reads instead, the
 backward second-order difference ``g (1.5 x_t - 2 x_t-1 + 0.5 x_t-2)``, which lags the true
@@ -123,9 +124,13 @@ def main() -> None:
     config = EvalConfig(task=teacher.task, dr=args.dr, episodes=args.episodes,
                         action_repeat=teacher.action_repeat)
 
+    along: list[np.ndarray] = []  # the teacher's own evaluated states, episode by episode
+
     def mean_return(agent: object) -> float | dict[str, float]:
         """The mean return, and beside it the success rate where the task defines one."""
-        results = evaluate(agent, config, seed=args.seed)  # type: ignore[arg-type]
+        keep = agent is teacher
+        results = evaluate(agent, config, seed=args.seed, trajectories=keep)  # type: ignore[arg-type]
+        along.extend(r.trajectory["state"] for r in results if keep)
         mean = round(float(np.mean([r.episode_return for r in results])), 1)
         if results[0].success is None:
             return mean
@@ -144,6 +149,9 @@ def main() -> None:
                       "dr": args.dr, "velocities": [list(v) for v in readout.config.velocities],
                       "gains": [round(g, 4) for g in readout.config.gains],
                       "derivation_fit": derivation_fit(readout, states, first),
+                      "derivation_fit_along_teacher": derivation_fit(
+                          readout, np.concatenate(along),
+                          np.concatenate([np.arange(len(a)) == 0 for a in along])),
                       "mean_return": returns}))
 
 
