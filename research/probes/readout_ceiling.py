@@ -46,6 +46,16 @@ from twist_models.stages.evaluation import EvalConfig, evaluate
 from twist_sim.tasks import Step
 
 
+def three_read_state(readout: StateReadOut, state: torch.Tensor, earlier: torch.Tensor
+                     ) -> torch.Tensor:
+    """``state`` [..., S] (two-read velocities, x_t and x_t-1) with its velocities replaced by
+    the backward second-order difference g (1.5 x_t - 2 x_t-1 + 0.5 x_t-2), from ``earlier``
+    [..., S], the state of x_t-1 and x_t-2: 1.5 of this step's rate minus 0.5 of the last's."""
+    rates = [v[0] for v in readout.config.velocities]
+    state[..., rates] = 1.5 * state[..., rates] - 0.5 * earlier[..., rates]
+    return state
+
+
 class DerivedVelocityAgent:
     """``inner`` acting on the true positions with velocities derived as ``readout`` derives
     them, after Gaussian noise of std ``sigma`` on the positions."""
@@ -74,10 +84,8 @@ class DerivedVelocityAgent:
         self._previous, self._before = positions, previous
         with torch.no_grad():
             state = self.readout.state(positions, previous)
-            if self.order == 2:  # backward second-order difference: g (1.5 x_t - 2 x_t-1 + .5 x_t-2)
-                earlier = self.readout.state(previous, before)
-                rates = [v[0] for v in self.readout.config.velocities]
-                state[rates] = 1.5 * state[rates] - 0.5 * earlier[rates]
+            if self.order == 2:
+                state = three_read_state(self.readout, state, self.readout.state(previous, before))
             state = state.numpy()
         return self.inner.act(dataclasses.replace(step, state=state), image)
 

@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Sequence
+from pathlib import Path
 from unittest import mock
 
 import numpy as np
@@ -36,6 +38,9 @@ from twist_data.sampler import heldout_episodes
 from twist_models.acting import ImageAgent, load_agent
 from twist_models.readout import StateReadOut
 from twist_models.stages.evaluation import EvalConfig, evaluate
+
+sys.path.insert(0, str(Path(__file__).parent))
+from readout_ceiling import three_read_state  # a sibling probe
 
 
 def training_states(dataset, holdout_every: int = 10) -> np.ndarray:
@@ -64,8 +69,7 @@ def run(agent: ImageAgent, dr: str, episodes: int, seed: int, order: int = 1
             first = (positions == previous).all(-1, keepdim=True)
             before = previous if not earlier or earlier[0].shape != previous.shape else \
                 torch.where(first, previous, earlier[0])
-            rates = [v[0] for v in self.config.velocities]
-            full[..., rates] = 1.5 * full[..., rates] - 0.5 * state(self, previous, before)[..., rates]
+            full = three_read_state(self, full, state(self, previous, before))
             earlier[:] = [previous]
         handed.append(full.detach().cpu().numpy().reshape(-1, full.shape[-1]))
         return full
