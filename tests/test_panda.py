@@ -145,6 +145,13 @@ def test_a_tiny_collection_rerenders_bit_exactly(task: str, tmp_path, gl: None) 
     colour = data.column("dr/colour")
     assert not np.array_equal(colour[0], colour[1])
     assert check_reproduction(data, n_steps=20) == []
+    if task == "panda-push":  # the goal stays put within an episode; the hand moves
+        from twist_models.readout import episode_constants
+
+        state, is_first = data.column("state"), np.zeros(data.n_steps, bool)
+        is_first[data.episode_starts] = True
+        assert episode_constants(state, is_first, (6, 7)) == (6, 7)
+        assert episode_constants(state, is_first, range(3)) == ()
 
 
 class ScriptedPush:

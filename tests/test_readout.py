@@ -40,6 +40,7 @@ from twist_models.losses import readout_loss
 from twist_models.networks import ImageEncoder
 from twist_models.readout import (
     StateReadOut,
+    episode_constants,
     pair_velocities,
     robust_standardisation,
     training_frames,
@@ -113,6 +114,71 @@ def test_a_velocity_is_paired_down_to_min_pairing_and_refused_below_it(inputs) -
                            min_pairing=offered).velocities[0] == (3, 0)
     with pytest.raises(ConfigError, match="min_pairing must lie in"):
         ReadOutStage(min_pairing=0.0)
+
+
+def _with_goal(rows: FrameRows, goal: np.ndarray) -> np.ndarray:
+    """D's states with a goal component [N] put after the positions: x, cos, sin, goal |
+    ẋ, θ̇."""
+    state = rows.state.numpy()
+    return np.concatenate([state[:, :3], goal[:, None], state[:, 3:]], 1)
+
+
+GOAL_LAYOUT = (("position", 4), ("velocity", 2))
+
+
+def test_a_component_no_episode_changes_is_found_and_nothing_else(inputs) -> None:
+    rows = inputs[3]
+    is_first = rows.steps == rows.episode_start
+    episode = np.cumsum(is_first)
+    state = _with_goal(rows, np.random.default_rng(0).uniform(-1, 1, 99)[episode])
+    config = pair_velocities(state, is_first, GOAL_LAYOUT, MLPConfig())
+    # The goal differs between episodes but stays put within each; x and the angle move.
+    assert config.poolable() == (3,)
+    assert episode_constants(state, is_first, range(6)) == (3,)
+    moved = state.copy()
+    moved[np.flatnonzero(is_first)[2] + 5, 3] += 1e-3  # one episode's goal moves once
+    assert episode_constants(moved, is_first, range(6)) == ()
+    with pytest.raises(ConfigError, match="must start an episode"):
+        episode_constants(state[1:], is_first[1:], range(6))
+
+
+def test_pooling_hands_on_the_running_mean_of_a_constant_components_readings() -> None:
+    config = ReadOutConfig(state_dim=6, read=(0, 1, 2, 3), angles=((1, 2),),
+                           velocities=((4, 0), (5, 1, 2)), gains=(20.0, 20.0), pooled=(3,))
+    readout = StateReadOut(config, features=2)
+    reading = torch.randn(2, 7, 4)  # two episodes, seven steps each
+    goal = reading[..., 3].numpy()
+    expected = np.cumsum(goal, 1) / np.arange(1, 8)
+    history, handed = None, []
+    for t in range(7):
+        positions, previous, history = readout.pool_step(reading[:, t], history)
+        if t > 0:  # velocities come from what was handed on the step before
+            torch.testing.assert_close(previous, handed[-1])
+        handed.append(positions)
+    handed = torch.stack(handed, 1)
+    np.testing.assert_allclose(handed[..., 3].numpy(), expected, rtol=1e-5)
+    torch.testing.assert_close(handed[..., :3], reading[..., :3])  # the rest as read
+    # Along windows alike; a new episode within the window starts the mean again.
+    is_first = torch.zeros(2, 7, dtype=torch.bool)
+    is_first[:, 0] = True
+    torch.testing.assert_close(readout.pool_window(reading, is_first), handed)
+    is_first[1, 4] = True
+    restarted = readout.pool_window(reading, is_first)[1, 4:, 3].numpy()
+    np.testing.assert_allclose(restarted, np.cumsum(goal[1, 4:]) / np.arange(1, 4), rtol=1e-5)
+    # Nothing pooled: every frame handed on as read, the history that reading.
+    plain = StateReadOut(dataclasses.replace(config, pooled=()), features=2)
+    positions, _, history = plain.pool_step(reading[:, 1], reading[:, 0])
+    assert torch.equal(positions, reading[:, 1]) and torch.equal(history, reading[:, 1])
+
+
+def test_only_a_read_component_outside_angles_and_velocity_sources_is_pooled() -> None:
+    base = {"state_dim": 6, "read": (0, 1, 2, 3), "angles": ((1, 2),),
+            "velocities": ((4, 0), (5, 1, 2)), "gains": (20.0, 20.0)}
+    for pooled in ((0,), (1,), (4,)):  # a velocity's source, an angle's cosine, a velocity
+        with pytest.raises(ConfigError, match=re.escape(f"velocity, got {list(pooled)}")):
+            ReadOutConfig(**base, pooled=pooled)
+    with pytest.raises(ConfigError, match="pool must be one of"):
+        ReadOutStage(pool="goal")
 
 
 def test_robust_standardisation_by_hand() -> None:
@@ -341,6 +407,31 @@ def test_the_step_path_acts_on_what_the_window_path_filters(inputs) -> None:
         for t in range(6):
             step, history = student.step_embed(image[t:t + 1], history)
             torch.testing.assert_close(step[0], window[t], atol=1e-5, rtol=1e-5)
+
+
+def test_a_pooling_student_acts_on_what_its_windows_filter(inputs) -> None:
+    dataset, _, _, rows = inputs
+    is_first = rows.steps == rows.episode_start
+    state = _with_goal(rows, np.cumsum(is_first) / 10.0)
+    torch.manual_seed(0)
+    teacher = Teacher(teacher_preset("tiny", 6, 1)).eval()
+    config = pair_velocities(state, is_first, GOAL_LAYOUT, MLPConfig(layers=2, units=32))
+    config = dataclasses.replace(config, pooled=episode_constants(state, is_first, (3,)))
+    student = Student(student_preset("tiny", teacher.config, readout=config)).eval()
+    copy_teacher_filter(student, teacher.world_model)
+    images = np.empty((6, *open_dataset(dataset).spec.image_shape), np.uint8)
+    open_dataset(dataset).read_frames(np.arange(6), np.zeros(6, int), images)
+    image = torch.as_tensor(images)
+    with torch.no_grad():
+        window = student.embed(image[None], torch.tensor([[True] + [False] * 5]))[0]
+        reading = student.perception.read_positions(image)
+        history = None
+        for t in range(6):
+            step, history = student.step_embed(image[t:t + 1], history)
+            torch.testing.assert_close(step[0], window[t], atol=1e-5, rtol=1e-5)
+    # The goal handed on is the mean of the frames read so far.
+    torch.testing.assert_close(history[0, 3], reading[:, 3].mean())
+    assert int(history[0, -1]) == 6
 
 
 def test_gradients_reach_the_cnn_and_never_the_teachers_filter(inputs) -> None:

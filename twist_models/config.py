@@ -350,6 +350,17 @@ class ReadOutConfig:
     is read, near that centre: D's median angle, or 0 for an angle the mirror turns over (1:
     as read; the map is monotone and leaves the opposite angle where it is, so it needs
     0 < lean < 2; :meth:`StateReadOut.positions`)."""
+    pooled: tuple[int, ...] = ()
+    """Read components no episode of D changes (``panda-push``'s goal marker): each is handed
+    on as the mean of its readings over the episode so far, so errors that differ between
+    frames average out; empty, every frame read afresh (``ReadOutStage.pool``)."""
+
+    def poolable(self) -> tuple[int, ...]:
+        """The read components ``pooled`` may name: neither in an angle pair (pooled, it
+        would leave the unit circle) nor the source of a velocity (which needs its change)."""
+        excluded = {i for velocity in self.velocities for i in velocity[1:]} | {
+            i for pair in self.angles for i in pair}
+        return tuple(i for i in self.read if i not in excluded)
 
     def __post_init__(self) -> None:
         require_positive(self, "state_dim")
@@ -378,6 +389,9 @@ class ReadOutConfig:
         if len(self.gains) != len(self.velocities):
             raise ConfigError(f"gains needs one factor per velocity ({len(self.velocities)}), "
                               f"got {len(self.gains)}")
+        if not set(self.pooled) <= set(self.poolable()):
+            raise ConfigError(f"pooled components must be read ones, neither in an angle pair "
+                              f"nor the source of a velocity, got {list(self.pooled)}")
 
 
 @dataclass(frozen=True)

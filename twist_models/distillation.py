@@ -188,9 +188,15 @@ class ReadOutStage:
     ``read`` (the recipe's), the difference with the frame before the window, which the
     sampler draws with it, as when acting; ``zero``: none, the velocities 0 while the
     teacher's filter reads the true ones there, which only training shows."""
+    pool: str = "constant"
+    """Which read components are handed on as the mean of their readings over the episode
+    so far (``ReadOutConfig.pooled``): ``constant``, those no training episode of D changes
+    (``panda-push``'s goal marker; none on the suite tasks), so that a frame's error averages
+    out with the next; ``none``, every frame read afresh."""
 
     def __post_init__(self) -> None:
         require_choice(self, "frames", ("auto", "typical", "all"))
+        require_choice(self, "pool", ("constant", "none"))
         require_choice(self, "mirror", READOUT_MIRRORS)
         require_choice(self, "first_velocity", ("read", "zero"))
         require_choice(self, "units", ("robust", "teacher"))

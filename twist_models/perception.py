@@ -75,7 +75,8 @@ class FrameEmbedding(Perception):
 
 class StateReading(Perception):
     """The CNN's features read as the teacher's state and embedded by the teacher's own state
-    encoder: the history is the last step's reading, whose difference gives the velocities."""
+    encoder: the history is the last step's reading, whose difference gives the velocities
+    (and the frames read so far where it pools a component, ``ReadOutConfig.pooled``)."""
 
     trains_filter = False
 
@@ -90,15 +91,15 @@ class StateReading(Perception):
 
     def window(self, image: torch.Tensor, is_first: torch.Tensor,
                before: torch.Tensor | None = None) -> torch.Tensor:
-        positions = self.read_positions(image)
+        positions = self.readout.pool_window(self.read_positions(image), is_first)
         previous = None if before is None else self.read_positions(before)
         return self.embed_state(self.readout.window_state(positions, is_first, previous))
 
     def step(self, image: torch.Tensor, history: torch.Tensor | None
              ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        positions = self.read_positions(image)
-        previous = positions if history is None else history
-        return self.embed_state(self.readout.state(positions, previous)), positions
+        positions, previous, history = self.readout.pool_step(self.read_positions(image),
+                                                              history)
+        return self.embed_state(self.readout.state(positions, previous)), history
 
     def read_positions(self, image: torch.Tensor) -> torch.Tensor:
         """The reading of uint8 images [..., H, W, 3] -> [..., R]: what the filter is handed

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -42,6 +43,23 @@ UNIT_CIRCLE = 1e-3
 MAD_TO_STD = 1.4826
 #: The least spread a read component is standardised by (a component D never varies).
 MIN_SCALE = 1e-3
+#: How far, relative to its largest magnitude over D (at least 1), a component may move
+#: within an episode and still count as constant there: float32 rounding, not motion.
+CONSTANT_TOLERANCE = 1e-6
+
+
+def episode_constants(states: np.ndarray, is_first: np.ndarray, candidates: Sequence[int]
+                      ) -> tuple[int, ...]:
+    """Which of the state components ``candidates`` no episode of ``states`` [N, S] changes
+    (``is_first`` [N] marks each episode's first step; row 0 starts one)."""
+    starts = np.flatnonzero(is_first)
+    if len(starts) == 0 or starts[0] != 0:
+        raise ConfigError("the steps measured for constant components must start an episode")
+    span = np.maximum.reduceat(states, starts, 0) - np.minimum.reduceat(states, starts, 0)
+    tolerance = CONSTANT_TOLERANCE * np.maximum(1.0, np.abs(states).max(0))
+    return tuple(i for i in candidates if bool((span[:, i] <= tolerance[i]).all()))
+
+
 def unit_circle_pairs(states: np.ndarray, read: list[int]) -> list[tuple[int, int]]:
     """Adjacent components of ``read`` whose squares sum to 1 on every row of ``states``
     [N, S]: a (cos, sin) pair, as dm_control lays out an angle."""
@@ -179,6 +197,8 @@ class StateReadOut(nn.Module):
                         if len(v) == 2]
         self._angular = [(k, position[v[1]], position[v[2]])
                          for k, v in enumerate(config.velocities) if len(v) == 3]
+        #: The slots of ``config.pooled`` in the read vector.
+        self.pooled_slots = [position[i] for i in config.pooled]
 
     def loss(self, features: torch.Tensor, state: torch.Tensor, delta: float) -> torch.Tensor:
         """The first stage's term: CNN features [..., F] and the true state [..., S] -> []:
@@ -304,6 +324,47 @@ class StateReadOut(nn.Module):
         for k, rate in rates:
             state[..., self.config.velocities[k][0]] = rate
         return state
+
+    def pool_step(self, reading: torch.Tensor, history: torch.Tensor | None
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One acting step's reading [N, R] and the history the last step returned (None at
+        an episode's start) -> (the positions handed on [N, R], the last step's [N, R], the
+        next history). Each ``config.pooled`` slot is handed on as the mean of its readings
+        over the episode so far; the history is the handed positions, followed by the count
+        of frames read where any slot is pooled ([N, R + 1]), in float32 whatever autocast
+        read it (bfloat16 counts no further than 256)."""
+        reading = reading.float()
+        previous = reading if history is None else history[..., :reading.shape[-1]]
+        if not self.pooled_slots:
+            return reading, previous, reading
+        slots, positions = self.pooled_slots, reading.clone()
+        if history is None:
+            count = reading.new_ones(*reading.shape[:-1], 1)
+        else:
+            count = history[..., -1:] + 1
+            positions[..., slots] = (previous[..., slots]
+                                     + (reading[..., slots] - previous[..., slots]) / count)
+        return positions, previous, torch.cat([positions, count], -1)
+
+    def pool_window(self, reading: torch.Tensor, is_first: torch.Tensor) -> torch.Tensor:
+        """:meth:`pool_step` along windows: reading [B, T, R], is_first [B, T] -> the positions
+        handed on [B, T, R]. A window's pool starts at its first step, or at an episode's
+        first step within it: what a window mid-episode shows of the frames before is not
+        read."""
+        if not self.pooled_slots:
+            return reading
+        reading = reading.float()
+        pooled = reading[..., self.pooled_slots]
+        mean, count = pooled[:, 0], torch.ones_like(pooled[:, 0])
+        means = [mean]
+        for t in range(1, reading.shape[1]):
+            first = is_first[:, t, None].bool()
+            count = torch.where(first, torch.ones_like(count), count + 1)
+            mean = torch.where(first, pooled[:, t], mean + (pooled[:, t] - mean) / count)
+            means.append(mean)
+        positions = reading.clone()
+        positions[..., self.pooled_slots] = torch.stack(means, 1)
+        return positions
 
     def window_state(self, positions: torch.Tensor, is_first: torch.Tensor,
                      before: torch.Tensor | None = None) -> torch.Tensor:

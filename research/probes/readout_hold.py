@@ -5,7 +5,9 @@ Some never change within an episode (panda-push's goal marker), so an error inde
 between frames would shrink as the frames of one episode are pooled. This evaluates a
 read-out student on the same seeded episodes under each condition:
 
-* ``as-is``: the student unchanged (the baseline, measured in the same run);
+* ``as-is``: the student unchanged (the baseline, measured in the same run; a student
+  distilled with ``readout_stage.pool=constant`` already pools the components D's episodes
+  never change, ``ReadOutConfig.pooled``);
 * ``mean``, ``median``: the ``--hold`` components handed to the filter as the mean (or
   median) of their readings over the episode so far;
 * ``truth``: the ``--hold`` components handed over exactly as the simulator has them, the most

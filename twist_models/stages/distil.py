@@ -84,6 +84,7 @@ from twist_models.frame_targets import (
     teacher_targets,
 )
 from twist_models.readout import (
+    episode_constants,
     pair_velocities,
     robust_standardisation,
     training_frames,
@@ -240,14 +241,21 @@ def _training_rows(data: MatchingDataset, config: DistilConfig) -> FrameRows:
 def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher, mirror: str,
                   stage: ReadOutStage) -> ReadOutConfig:
     """What a read-out student reads and derives, measured on D's training steps (velocities
-    paired at ``stage.min_pairing``), the mirror signs of what it reads where ``mirror``
+    paired at ``stage.min_pairing``; components constant within episodes pooled where
+    ``stage.pool`` asks), the mirror signs of what it reads where ``mirror``
     (``stage.mirror`` resolved) asks for them, and how far it leans the angles it reads
     (``stage.lean``)."""
     wm = teacher.config.world_model
-    readout = pair_velocities(rows.state.numpy(), rows.steps == rows.episode_start,
-                              data.spec.state_layout, wm.state_mlp, data.spec.task,
-                              hidden=wm.state_hidden, min_pairing=stage.min_pairing)
-    readout = dataclasses.replace(readout, lean=stage.lean)
+    states, is_first = rows.state.numpy(), rows.steps == rows.episode_start
+    readout = pair_velocities(states, is_first, data.spec.state_layout, wm.state_mlp,
+                              data.spec.task, hidden=wm.state_hidden,
+                              min_pairing=stage.min_pairing)
+    pooled = (episode_constants(states, is_first, readout.poolable()) if stage.pool == "constant"
+              else ())
+    if pooled:
+        log.info("the read-out pools components %s over each episode: D's episodes never "
+                 "change them", list(pooled))
+    readout = dataclasses.replace(readout, lean=stage.lean, pooled=pooled)
     if mirror == "none":
         return readout
     signs = _mirror(data)
