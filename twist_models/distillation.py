@@ -191,8 +191,8 @@ class ReadOutStage:
     pool: str = "constant"
     """Which read components are handed on as the mean of their readings over the episode
     so far (``ReadOutConfig.pooled``): ``constant``, those no training episode of D changes
-    (``panda-push``'s goal marker; none on the suite tasks), so that a frame's error averages
-    out with the next; ``none``, every frame read afresh."""
+    (``panda-push``'s goal marker, ``finger-turn_easy``'s target), so that a frame's error
+    averages out with the next; ``none``, every frame read afresh."""
 
     def __post_init__(self) -> None:
         require_choice(self, "frames", ("auto", "typical", "all"))
