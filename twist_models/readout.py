@@ -331,12 +331,12 @@ class StateReadOut(nn.Module):
         an episode's start) -> (the positions handed on [N, R], the last step's [N, R], the
         next history). Each ``config.pooled`` slot is handed on as the mean of its readings
         over the episode so far; the history is the handed positions, followed by the count
-        of frames read where any slot is pooled ([N, R + 1]), in float32 whatever autocast
-        read it (bfloat16 counts no further than 256)."""
-        reading = reading.float()
+        of frames read where any slot is pooled ([N, R + 1], then in float32 whatever autocast
+        read it: bfloat16 counts no further than 256)."""
         previous = reading if history is None else history[..., :reading.shape[-1]]
         if not self.pooled_slots:
             return reading, previous, reading
+        reading, previous = reading.float(), previous.float()
         slots, positions = self.pooled_slots, reading.clone()
         if history is None:
             count = reading.new_ones(*reading.shape[:-1], 1)
