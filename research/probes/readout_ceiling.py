@@ -11,7 +11,11 @@ on the true state (the baseline measured in the same run):
   them (the agent bundle's pairing and gains; 0 at an episode's first step);
 * ``derived+noise:SIGMA`` (``--noise SIGMA``, repeatable): the same with Gaussian noise of
   std ``SIGMA`` (the state's units) on every position before the derivation: a CNN's
-  read error, which the difference amplifies.
+  read error, which the difference amplifies;
+* ``true-velocities+noise:SIGMA`` (with ``--true-velocities``): the noisy positions, but the
+  true velocities: what the noise costs through the positions alone. Far above
+  ``derived+noise`` at the same SIGMA, the derived velocities are what the read error costs
+  (a smoother derivation is the lever); near it, the positions are.
 
 It also prints how well each derived velocity matches the true one (RMSE, and the share of
 the true velocity's variance it explains), offline over D's training steps and along the
@@ -26,7 +30,7 @@ A ceiling near the teacher's return says the derivation costs nothing and the st
 lies in its read-out; a ceiling near the student's says the derivation caps it.
 
 ``python research/probes/readout_ceiling.py AGENT TEACHER DATASET [--noise 0.01] [--episodes
-30] [--dr heldout] [--order 1 --order 2]``; prints one JSON line.
+30] [--dr heldout] [--order 1 --order 2] [--true-velocities]``; prints one JSON line.
 """
 
 from __future__ import annotations
@@ -63,8 +67,9 @@ class DerivedVelocityAgent:
     uses_images = False
 
     def __init__(self, inner: StateAgent, readout: StateReadOut, sigma: float = 0.0,
-                 seed: int = 0, order: int = 1) -> None:
+                 seed: int = 0, order: int = 1, true_velocities: bool = False) -> None:
         self.inner, self.readout, self.sigma, self.order = inner, readout, sigma, order
+        self.true_velocities = true_velocities
         self.task, self.action_repeat = inner.task, inner.action_repeat
         self.action_dim = inner.action_dim
         self._rng = np.random.default_rng(seed)
@@ -87,6 +92,9 @@ class DerivedVelocityAgent:
             if self.order == 2:
                 state = three_read_state(self.readout, state, self.readout.state(previous, before))
             state = state.numpy()
+        if self.true_velocities:
+            rates = [v[0] for v in self.readout.config.velocities]
+            state[rates] = step.state[rates]
         return self.inner.act(dataclasses.replace(step, state=state), image)
 
 
@@ -119,6 +127,8 @@ def main() -> None:
     parser.add_argument("--order", type=int, action="append", default=None,
                         help="derivation orders to run: 1, the recipe's (default), 2 (also"
                              " a backward second-order difference, less lag)")
+    parser.add_argument("--true-velocities", action="store_true",
+                        help="also each --noise with the true velocities handed on")
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--dr", default="heldout")
     parser.add_argument("--seed", type=int, default=0)
@@ -153,6 +163,9 @@ def main() -> None:
         for sigma in args.noise:
             returns[f"{name}+noise:{sigma:g}"] = mean_return(
                 DerivedVelocityAgent(teacher, readout, sigma, args.seed, order))
+    for sigma in args.noise if args.true_velocities else []:
+        returns[f"true-velocities+noise:{sigma:g}"] = mean_return(
+            DerivedVelocityAgent(teacher, readout, sigma, args.seed, true_velocities=True))
     print(json.dumps({"agent": args.agent, "task": teacher.task, "episodes": args.episodes,
                       "dr": args.dr, "velocities": [list(v) for v in readout.config.velocities],
                       "gains": [round(g, 4) for g in readout.config.gains],
