@@ -26,11 +26,15 @@ backward second-order difference ``g (1.5 x_t - 2 x_t-1 + 0.5 x_t-2)``, which la
 velocity less where it changes fast within an agent step, at the price of amplifying read
 noise more.
 
+``--span K`` derives each velocity over K agent steps instead, ``g (x_t - x_t-K) / K`` (fewer
+steps at an episode's start): read noise enters it K times less, and it lags the true
+velocity by (K - 1) / 2 steps more.
+
 A ceiling near the teacher's return says the derivation costs nothing and the student's gap
 lies in its read-out; a ceiling near the student's says the derivation caps it.
 
 ``python research/probes/readout_ceiling.py AGENT TEACHER DATASET [--noise 0.01] [--episodes
-30] [--dr heldout] [--order 1 --order 2] [--true-velocities]``; prints one JSON line.
+30] [--dr heldout] [--order 1 --order 2] [--span 2] [--true-velocities]``; prints one JSON line.
 """
 
 from __future__ import annotations
@@ -67,9 +71,11 @@ class DerivedVelocityAgent:
     uses_images = False
 
     def __init__(self, inner: StateAgent, readout: StateReadOut, sigma: float = 0.0,
-                 seed: int = 0, order: int = 1, true_velocities: bool = False) -> None:
+                 seed: int = 0, order: int = 1, true_velocities: bool = False,
+                 span: int = 1) -> None:
         self.inner, self.readout, self.sigma, self.order = inner, readout, sigma, order
-        self.true_velocities = true_velocities
+        self.true_velocities, self.span = true_velocities, span
+        self._reads: list[torch.Tensor] = []
         self.task, self.action_repeat = inner.task, inner.action_repeat
         self.action_dim = inner.action_dim
         self._rng = np.random.default_rng(seed)
@@ -79,6 +85,7 @@ class DerivedVelocityAgent:
     def reset(self) -> None:
         self.inner.reset()
         self._previous = self._before = None
+        self._reads = []
 
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
         read = list(self.readout.config.read)
@@ -87,8 +94,13 @@ class DerivedVelocityAgent:
         previous = positions if step.is_first or self._previous is None else self._previous
         before = previous if step.is_first or self._before is None else self._before
         self._previous, self._before = positions, previous
+        self._reads = ([] if step.is_first else self._reads[-self.span:]) + [positions]
         with torch.no_grad():
             state = self.readout.state(positions, previous)
+            if self.span > 1 and len(self._reads) > 1:
+                spanned = self.readout.state(positions, self._reads[0])
+                rates = [v[0] for v in self.readout.config.velocities]
+                state[rates] = spanned[rates] / (len(self._reads) - 1)
             if self.order == 2:
                 state = three_read_state(self.readout, state, self.readout.state(previous, before))
             state = state.numpy()
@@ -127,6 +139,8 @@ def main() -> None:
     parser.add_argument("--order", type=int, action="append", default=None,
                         help="derivation orders to run: 1, the recipe's (default), 2 (also"
                              " a backward second-order difference, less lag)")
+    parser.add_argument("--span", type=int, action="append", default=[],
+                        help="also each noise with velocities derived over this many steps")
     parser.add_argument("--true-velocities", action="store_true",
                         help="also each --noise with the true velocities handed on")
     parser.add_argument("--episodes", type=int, default=30)
@@ -163,6 +177,10 @@ def main() -> None:
         for sigma in args.noise:
             returns[f"{name}+noise:{sigma:g}"] = mean_return(
                 DerivedVelocityAgent(teacher, readout, sigma, args.seed, order))
+    for span in args.span:
+        for sigma in [0.0, *args.noise]:
+            returns[f"span{span}+noise:{sigma:g}"] = mean_return(
+                DerivedVelocityAgent(teacher, readout, sigma, args.seed, span=span))
     for sigma in args.noise if args.true_velocities else []:
         returns[f"true-velocities+noise:{sigma:g}"] = mean_return(
             DerivedVelocityAgent(teacher, readout, sigma, args.seed, true_velocities=True))

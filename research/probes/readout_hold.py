@@ -102,18 +102,27 @@ def compare(path: str, hold: Sequence[int], drs: Sequence[str], episodes: int, s
                 # batch=10 steps episodes together, each on its own draws (evaluate's doc);
                 # one shared pool per batch is right because a batch's episodes start together.
                 results[condition] = evaluate(agent, config, seed=seed, batch=10)
-        base = np.array([r.episode_return for r in results["as-is"]])
-        for condition, episodes_run in results.items():
-            returns = np.array([r.episode_return for r in episodes_run])
-            difference = returns - base
-            success = [r.success for r in episodes_run if r.success is not None]
-            out.append({"dr": dr, "condition": condition, "episodes": episodes,
-                        "return": round(float(returns.mean()), 1),
-                        "success": round(float(np.mean(success)), 2) if success else None,
-                        "difference": round(float(difference.mean()), 1),
-                        "stderr": round(float(difference.std(ddof=1) / np.sqrt(episodes)), 1),
-                        "better": int((difference > 0).sum())})
+        out.extend(paired_rows(dr, results, "as-is"))
     return out
+
+
+def paired_rows(dr: str, results: dict[str, list], baseline: str) -> list[dict]:
+    """One JSON row per condition of ``results`` (its evaluated episodes, the same seeded
+    episodes under each): return, success rate and the paired difference against
+    ``baseline``'s."""
+    base = np.array([r.episode_return for r in results[baseline]])
+    rows = []
+    for condition, episodes_run in results.items():
+        returns = np.array([r.episode_return for r in episodes_run])
+        difference = returns - base
+        success = [r.success for r in episodes_run if r.success is not None]
+        rows.append({"dr": dr, "condition": condition, "episodes": len(returns),
+                     "return": round(float(returns.mean()), 1),
+                     "success": round(float(np.mean(success)), 2) if success else None,
+                     "difference": round(float(difference.mean()), 1),
+                     "stderr": round(float(difference.std(ddof=1) / np.sqrt(len(returns))), 1),
+                     "better": int((difference > 0).sum())})
+    return rows
 
 
 def main() -> None:
