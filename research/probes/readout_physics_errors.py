@@ -15,7 +15,10 @@ Each preset runs the same seeded episodes (``twist-eval``'s draws); at every ste
 handed to the teacher's filter (read positions, velocities derived from two reads) is set
 beside the simulator's. Prints one JSON line per preset: the return, the RMS error per state
 component in the state's units, and the share of visited states with a read component outside
-D's training range (its 0.5-99.5 percentiles), with the position error inside and outside it.
+D's training range (its 0.5-99.5 percentiles), with the position error inside and outside it,
+and per read component the correlation of its error with the same episode's error one step
+before (near 0: independent between frames, which averaging over frames removes; near 1:
+persistent).
 
 ``python research/probes/readout_physics_errors.py AGENT DATASET [--dr heldout,heldout-physics]
 [--episodes 30] [--seed 0] [--order 2]``
@@ -50,16 +53,20 @@ def training_states(dataset, holdout_every: int = 10) -> np.ndarray:
 
 
 def run(agent: ImageAgent, dr: str, episodes: int, seed: int, order: int = 1
-        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Returns [E], and the simulator's and the handed states at every acted step [N, S].
+        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Returns [E], the simulator's and the handed states at every acted step [N, S], and
+    each step's episode [N] (rows of one episode in time order).
     ``order`` 2 hands the filter velocities from the backward second-order difference of
     three reads (``readout_ceiling.py --order 2``) instead of the recipe's first-order one."""
-    true, handed, pending = [], [], []
+    true, handed, pending, episode = [], [], [], []
+    batches = [-1]
     act_batch, state = ImageAgent.act_batch, StateReadOut.state
     earlier: list[torch.Tensor] = []  # the read before ``previous``; batched episodes step together
 
     def recording_act(self, steps: Sequence, images, uniform):
         pending.append(np.array([not s.is_last for s in steps]))
+        batches[0] += all(s.is_first for s in steps)
+        episode.append(batches[0] * len(steps) + np.arange(len(steps)))
         true.append(np.stack([s.state for s in steps]))
         return act_batch(self, steps, images, uniform)
 
@@ -83,7 +90,17 @@ def run(agent: ImageAgent, dr: str, episodes: int, seed: int, order: int = 1
     live = np.concatenate(pending)
     return (np.array([r.episode_return for r in results]),
             np.concatenate(true)[live].astype(np.float64),
-            np.concatenate(handed)[live].astype(np.float64))
+            np.concatenate(handed)[live].astype(np.float64), np.concatenate(episode)[live])
+
+
+def lag_correlation(error: np.ndarray, episode: np.ndarray) -> np.ndarray:
+    """Per component, the correlation of ``error`` [N, C] with the same episode's error one
+    row before (``episode`` [N], rows of one episode in time order) -> [C]."""
+    order = np.argsort(episode, kind="stable")
+    error, episode = error[order], episode[order]
+    same = episode[1:] == episode[:-1]
+    now, before = error[1:][same], error[:-1][same]
+    return np.array([np.corrcoef(now[:, c], before[:, c])[0, 1] for c in range(error.shape[1])])
 
 
 def rms(values: np.ndarray) -> float | None:
@@ -106,7 +123,7 @@ def main() -> None:
     low, high = np.percentile(seen, 0.5, 0), np.percentile(seen, 99.5, 0)
     print(json.dumps({"d_range": [low.round(3).tolist(), high.round(3).tolist()]}), flush=True)
     for dr in args.dr.split(","):
-        returns, true, handed = run(agent, dr, args.episodes, args.seed, args.order)
+        returns, true, handed, episode = run(agent, dr, args.episodes, args.seed, args.order)
         error = handed - true
         outside = ((true[:, read] < low) | (true[:, read] > high)).any(1)
         position = np.sqrt((error[:, read] ** 2).mean(1))
@@ -122,7 +139,8 @@ def main() -> None:
             "outside_share_per_component": ((true[:, read] < low) | (true[:, read] > high)
                                             ).mean(0).round(4).tolist(),
             "position_rms_inside": rms(position[~outside]),
-            "position_rms_outside": rms(position[outside])}),
+            "position_rms_outside": rms(position[outside]),
+            "error_lag1_correlation": lag_correlation(error[:, read], episode).round(3).tolist()}),
             flush=True)
 
 
