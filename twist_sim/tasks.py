@@ -70,8 +70,9 @@ class TaskSpec:
     appended to the physics vector so that restoring it reproduces the picture."""
     mirror: tuple[float, ...] = ()
     """The sign each component of the state vector takes when the rendered view is mirrored
-    left to right: the camera sits in the world's x = 0 plane facing along y, so the mirror is
-    the reflection x -> -x, a symmetry of the task's dynamics. A read-out may average over it
+    left to right: the camera sits in a vertical plane of the world's (x = 0 facing along y
+    for the suite's camera 0, y = 0 facing along -x for the panda tasks'), so the mirror is
+    the reflection through that plane, a symmetry of the task's dynamics. A read-out may average over it
     (``ReadOutStage.mirror``); empty where not declared."""
     success: Callable[[np.ndarray], bool] | None = field(default=None, compare=False)
     """Whether an episode that ends in this privileged state [S] succeeded (the manipulation
@@ -126,10 +127,15 @@ for _spec in (
         TaskSpec("finger-turn_easy", "finger", "turn_easy",
                  model_fields=(("site_pos", "target"), ("site_size", "target"))),
         # The paper's manipulation tasks (twist_sim.panda); the goal marker moves per episode.
+        # Their camera looks along -x from the plane y = 0: the mirror is y -> -y.
+        # position (fingertips x y z, block x y z, goal x y), velocity (fingertips, block).
         TaskSpec("panda-push", environment=functools.partial(_panda, False),
                  model_fields=(("site_pos", "goal"),),
+                 mirror=(1, -1, 1, 1, -1, 1, 1, -1, 1, -1, 1, 1, -1, 1),
                  success=functools.partial(_panda_success, False)),
+        # position (fingertips x y z, opening, block x y z), velocity (the same seven).
         TaskSpec("panda-lift", environment=functools.partial(_panda, True),
+                 mirror=(1, -1, 1, 1, 1, -1, 1, 1, -1, 1, 1, 1, -1, 1),
                  success=functools.partial(_panda_success, True))):
     _REGISTERED[_spec.name] = _spec
 
