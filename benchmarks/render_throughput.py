@@ -1,5 +1,6 @@
-"""Collection-path throughput: agent steps/s for one physics step (action repeat 2) plus K=2
-randomised 64x64 views, per task, against dm_control's default render path in the same run.
+"""Collection-path throughput: agent steps/s for one agent step (action repeat 2 by default,
+``--action-repeat``; the panda tasks are made for 4) plus K=2 randomised 64x64 views, per task,
+against dm_control's default render path in the same run.
 
 Methods, interleaved per task so machine noise hits all of them alike:
   twist          env.step + DR parameter draw + DRRenderer.render (train preset: background and
@@ -10,6 +11,7 @@ Methods, interleaved per task so machine noise hits all of them alike:
 Each figure is the median over 5 slices. Prints one JSON line; target: twist >= 300 steps/s.
 
     python benchmarks/render_throughput.py [--tasks cheetah-run ...] [--seconds 2]
+        [--action-repeat 2]
 """
 
 from __future__ import annotations
@@ -63,8 +65,8 @@ def stepper(env: TaskEnv, rng: np.random.Generator) -> Callable[[], object]:
     return step
 
 
-def bench_task(task: str, seconds: float) -> dict:
-    env = TaskEnv(task, action_repeat=2)
+def bench_task(task: str, seconds: float, action_repeat: int = 2) -> dict:
+    env = TaskEnv(task, action_repeat=action_repeat)
     rng = np.random.default_rng(0)
     step = stepper(env, rng)
     out: dict = {}
@@ -96,17 +98,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=sorted(TASKS), choices=sorted(TASKS))
     parser.add_argument("--seconds", type=float, default=2.0, help="measuring time per method")
+    parser.add_argument("--action-repeat", type=int, default=2,
+                        help="physics steps per agent step (the panda tasks are made for 4)")
     args = parser.parse_args()
     results = {}
     for task in args.tasks:
-        results[task] = bench_task(task, args.seconds)
+        results[task] = bench_task(task, args.seconds, args.action_repeat)
         r = results[task]
         print(f"{task}: twist {r['twist']['steps_per_s']}/s, ss2 {r['twist_ss2']['steps_per_s']}/s, "
               f"dm_control {r['dm_control']['steps_per_s']}/s, physics "
               f"{r['physics_only']['steps_per_s']}/s", file=sys.stderr)
     twist = [r["twist"]["steps_per_s"] for r in results.values()]
     summary = {
-        "benchmark": "render_throughput", "views": K, "image_size": SIZE, "action_repeat": 2,
+        "benchmark": "render_throughput", "views": K, "image_size": SIZE, "action_repeat": args.action_repeat,
         "target_steps_per_s": TARGET, "min_twist_steps_per_s": min(twist),
         "median_speedup_vs_dm_control": statistics.median(
             r["speedup_vs_dm_control"] for r in results.values()),
