@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
 import pytest
 
 # Rendering tests run headless: pick EGL before anything imports MuJoCo (twist_data does the
@@ -71,6 +72,11 @@ def board_events(run: Path) -> tuple[dict[str, list[tuple[int, float]]],
     images = {t: [(e.step, (e.height, e.width)) for e in events.Images(t)]
               for t in tags["images"]}
     return scalars, images
+
+
+def mask_overlap(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two boolean pixel masks."""
+    return float((a & b).sum() / (a | b).sum())
 
 
 def load_script(path: Path) -> ModuleType:

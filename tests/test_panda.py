@@ -9,6 +9,7 @@ import pytest
 
 pytest.importorskip("dm_control")
 
+from tests.conftest import mask_overlap
 from twist_sim import panda
 from twist_sim.tasks import TASKS, TaskEnv
 
@@ -194,12 +195,9 @@ def test_the_mirrored_scene_moves_as_the_declared_mirror_and_renders_as_the_mirr
         block, of_reflected_block = (_yellow(renderer.render(p, params)[0])
                                      for p in (physics, of_reflected))
 
-    def overlap(a: np.ndarray, b: np.ndarray) -> float:
-        return (a & b).sum() / (a | b).sum()
-
     assert block.sum() > 10  # the block is seen
-    assert overlap(block[:, ::-1], of_reflected_block) > 0.8
-    assert overlap(block, of_reflected_block) < 0.2
+    assert mask_overlap(block[:, ::-1], of_reflected_block) > 0.8
+    assert mask_overlap(block, of_reflected_block) < 0.2
 
 
 def _yellow(view: np.ndarray) -> np.ndarray:

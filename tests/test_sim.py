@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.conftest import mask_overlap
 from twist_data.errors import ConfigError, PhysicsStateError, UnknownTaskError
 from twist_sim.tasks import TASKS, Dynamics, TaskEnv, task_spec
 
@@ -172,9 +173,6 @@ def test_a_tasks_mirror_signs_are_those_of_the_reflected_world(task: str) -> Non
         original, of_reflected = (_body_mask(renderer.render(p, params)[0])
                                   for p in (physics, reflected))
 
-    def overlap(a: np.ndarray, b: np.ndarray) -> float:
-        return (a & b).sum() / (a | b).sum()
-
     assert original.sum() > 20  # the bodies are seen
-    assert overlap(original[:, ::-1], of_reflected) > 0.8
-    assert overlap(original, of_reflected) < 0.5
+    assert mask_overlap(original[:, ::-1], of_reflected) > 0.8
+    assert mask_overlap(original, of_reflected) < 0.5

@@ -75,38 +75,35 @@ class DerivedVelocityAgent:
                  span: int = 1) -> None:
         self.inner, self.readout, self.sigma, self.order = inner, readout, sigma, order
         self.true_velocities, self.span = true_velocities, span
-        self._reads: list[torch.Tensor] = []
         self.task, self.action_repeat = inner.task, inner.action_repeat
         self.action_dim = inner.action_dim
         self._rng = np.random.default_rng(seed)
-        self._previous: torch.Tensor | None = None
-        self._before: torch.Tensor | None = None
+        self._rates = [v[0] for v in readout.config.velocities]
+        self._reads: list[torch.Tensor] = []  # this episode's latest reads, oldest first
 
     def reset(self) -> None:
         self.inner.reset()
-        self._previous = self._before = None
         self._reads = []
 
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
         read = list(self.readout.config.read)
         seen = step.state[read] + self.sigma * self._rng.standard_normal(len(read))
         positions = torch.as_tensor(seen, dtype=torch.float32)
-        previous = positions if step.is_first or self._previous is None else self._previous
-        before = previous if step.is_first or self._before is None else self._before
-        self._previous, self._before = positions, previous
-        self._reads = ([] if step.is_first else self._reads[-self.span:]) + [positions]
+        reads = ([] if step.is_first else self._reads[-max(self.span, 2):]) + [positions]
+        self._reads = reads
+        previous = reads[-2] if len(reads) > 1 else positions
+        before = reads[-3] if len(reads) > 2 else previous
         with torch.no_grad():
             state = self.readout.state(positions, previous)
-            if self.span > 1 and len(self._reads) > 1:
-                spanned = self.readout.state(positions, self._reads[0])
-                rates = [v[0] for v in self.readout.config.velocities]
-                state[rates] = spanned[rates] / (len(self._reads) - 1)
+            start = max(0, len(reads) - 1 - self.span)
+            if len(reads) - 1 - start > 1:
+                spanned = self.readout.state(positions, reads[start])
+                state[self._rates] = spanned[self._rates] / (len(reads) - 1 - start)
             if self.order == 2:
                 state = three_read_state(self.readout, state, self.readout.state(previous, before))
             state = state.numpy()
         if self.true_velocities:
-            rates = [v[0] for v in self.readout.config.velocities]
-            state[rates] = step.state[rates]
+            state[self._rates] = step.state[self._rates]
         return self.inner.act(dataclasses.replace(step, state=state), image)
 
 
