@@ -1,6 +1,7 @@
-"""The manipulation tasks: the gripper moves as its action says, a scripted grasp lifts the
-block and holds it, a scripted push puts it on the goal, a hand pressed onto the block neither
-sinks into it nor carries it off, and every instant restores exactly."""
+"""The manipulation tasks: the gripper moves as its action says, a scripted grasp lifts the block
+and holds it, fingers pressed onto its top earn no grasp, a scripted push puts it on the goal,
+a hand pressed onto the block neither sinks into it nor carries it off, and every instant
+restores exactly."""
 
 from __future__ import annotations
 
@@ -82,6 +83,24 @@ def test_a_scripted_grasp_lifts_the_block_and_earns_the_lift_reward() -> None:
     assert step.is_last
     assert step.state[6] - panda.BLOCK_HALF == pytest.approx(height, abs=0.005)
     assert TASKS["panda-lift"].success(step.state)
+
+
+def test_fingers_pressed_onto_the_blocks_top_earn_no_grasp() -> None:
+    # Half-open fingers pressed down onto the block both touch it, on its top face: reaching
+    # pays, grasping must not (a teacher paid for it held blocks down instead of lifting).
+    env = TaskEnv("panda-lift", REPEAT)
+    step = env.reset(seed=1)
+    block = step.state[4:7].copy()
+    step, _ = _steer(env, step, [*block[:2], block[2] + 0.08], 25, grip=-0.45)
+    step, _ = _steer(env, step, [*block[:2], 0.0], 20, grip=-0.45)
+    assert step.state[3] < panda.BLOCK_HALF - 0.01  # narrower than the block: on top of it
+    assert step.state[2] - step.state[6] > panda.BLOCK_HALF  # the fingertips above its top
+    assert step.reward / REPEAT < 0.2 + 0.01  # the reach term's at most: no grasp
+    # The same fingers closed on its sides, the block still on the table, grasp it.
+    step, _ = _steer(env, step, [*block[:2], block[2] + 0.08], 10, grip=1.0)
+    step, _ = _steer(env, step, block, 15, grip=1.0)
+    step, _ = _steer(env, step, block, 10, grip=-1.0)
+    assert step.reward / REPEAT > 0.2 + 0.3
 
 
 def test_a_scripted_push_puts_the_block_on_the_goal() -> None:

@@ -14,7 +14,7 @@ Episodes last 600 control steps: 150 agent steps at action repeat 4, as the pape
 
 Rewards are dense and computed from privileged state, each term a dm_control ``tolerance``
 in [0, 1]: reaching the block, then the block's distance to the goal over 20 cm and over the
-last 5 cm (push), or the block's height with both fingers on it (lift). Pushing's fingers are
+last 5 cm (push), or the block's height with both fingers on its sides (lift). Pushing's fingers are
 fixed shut; lifting's slide. The materials are named as dm_control's, so that domain
 randomisation recolours the robot (``self``), its hand and fingers (``effector``), the block
 (``decoration``), the goal marker (``target``) and the table (``grid``).
@@ -57,6 +57,9 @@ READY = (0.0, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785)
 #: the table (lift), at the episode's end.
 PUSH_TOLERANCE = 0.05
 LIFT_HEIGHT = 0.10
+#: The most a grasping contact's normal may point along the block's up axis (cos 45°): a
+#: finger on the block's side grasps it, one on its top face only presses.
+SIDE_CONTACT = float(np.cos(np.pi / 4))
 
 #: The arm's seven links, base to wrist: where each sits in its parent's frame (position and
 #: quaternion, as the Panda's joint placements), its joint's range (radians) and the capsule,
@@ -312,11 +315,17 @@ def _site_velocity(physics) -> np.ndarray:
 
 
 def _fingers_touch(physics) -> bool:
-    """Whether both fingers touch the block (lifting's scene)."""
+    """Whether both fingers touch the block on its sides (lifting's scene): a contact whose
+    normal, in the block's frame, lies closer to horizontal than :data:`SIDE_CONTACT` allows.
+    Fingers pressed onto its top face do not count: a teacher paid for them learned to hold
+    the block down rather than lift it."""
     ids = _scene_ids(True)
     contact = physics.data.contact
     pairs = np.stack([contact.geom1, contact.geom2], 1)
-    others = pairs[(pairs == ids.block).any(1)].ravel()  # both of each pair with the block
+    with_block = (pairs == ids.block).any(1)
+    up = physics.data.xmat[physics.model.geom_bodyid[ids.block]].reshape(3, 3)[:, 2]
+    side = np.abs(contact.frame[:, :3] @ up) < SIDE_CONTACT
+    others = pairs[with_block & side].ravel()  # both of each pair with the block
     touched = physics.model.geom_bodyid[others[others != ids.block]]
     return bool(np.isin(ids.fingers, touched).all())
 
