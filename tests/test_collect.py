@@ -40,6 +40,7 @@ from twist_models.stages.collect import (
 )
 from twist_models.stages.runlog import recorded_config
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, find_teacher, load_teacher
+from twist_sim import tasks
 from twist_sim.tasks import Dynamics, TaskEnv
 
 pytestmark = pytest.mark.usefixtures("gl")
@@ -204,7 +205,7 @@ def test_disk_full_drops_the_partial_episode_and_resume_continues(
     assert summary.episodes == 4 and verify_dataset(tmp_path).ok
 
 
-def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path) -> None:
+def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path, monkeypatch) -> None:
     with pytest.raises(UnknownTaskError, match="nope"):
         collect_preset("tiny", task="nope")
     config = dataclasses.replace(collect_preset("tiny"), frames=100)
@@ -223,6 +224,15 @@ def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path) -> N
         collect(tmp_path, config)
     with pytest.raises(CollectError, match="seed was 0, now 5"):
         collect(tmp_path, dataclasses.replace(config, seed=5), resume=True)
+    # The task changed since D was recorded: its steps would mix two tasks.
+    assert open_dataset(tmp_path).spec.extra["task_revision"] == 1
+    changed = dataclasses.replace(tasks.TASKS["cartpole-balance"], revision=2)
+    with monkeypatch.context() as patch:
+        patch.setitem(tasks._REGISTERED, "cartpole-balance", changed)
+        for kwargs in ({"resume": True}, {"shard": "other"}):
+            with pytest.raises(CollectError, match="holds cartpole-balance revision 1, but "
+                                                   "this library's cartpole-balance is revision 2"):
+                collect(tmp_path, config, **kwargs)
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
     blocker = tmp_path / "a-file"
     blocker.write_text("")

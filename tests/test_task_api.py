@@ -162,6 +162,8 @@ def test_a_spec_names_its_task_well_and_says_where_it_comes_from() -> None:
         TaskSpec("user-none")
     with pytest.raises(TaskRegistrationError, match="not both"):
         TaskSpec("user-both", "cartpole", "balance", environment=_environment(_scene()))
+    with pytest.raises(TaskRegistrationError, match="needs a revision >= 1, got 0"):
+        TaskSpec("user-push", environment=_environment(_scene()), revision=0)
 
 
 def test_an_unknown_task_lists_the_registered_ones_and_a_broken_module_is_named(

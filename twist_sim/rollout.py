@@ -29,7 +29,7 @@ from twist_sim.randomisation import (
     stack_view_params,
 )
 from twist_sim.render import DRRenderer, FrameRenderer
-from twist_sim.tasks import DEFAULT_ACTION_REPEAT, Step, TaskEnv
+from twist_sim.tasks import DEFAULT_ACTION_REPEAT, Step, TaskEnv, task_spec
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,8 @@ def simulated_spec(env: TaskEnv, renderer: FrameRenderer, extra: dict[str, Any] 
         task=env.name, action_repeat=env.action_repeat, dr_params=VIEW_PARAMS,
         episode_dr_params=EPISODE_PARAMS, state_layout=env.state_layout,
         extra={"render": [renderer.provenance()], "physics_layout": [list(f) for f in env.physics_layout],
-               "versions": library_versions(), **(extra or {})},
+               "versions": library_versions(), "task_revision": task_spec(env.name).revision,
+               **(extra or {})},
     )
 
 

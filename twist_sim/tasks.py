@@ -78,11 +78,18 @@ class TaskSpec:
     """Whether an episode that ends in this privileged state [S] succeeded (the manipulation
     tasks: the block on the goal, or lifted); evaluation reports the rate beside the return.
     None: the task's return is its only measure."""
+    revision: int = 1
+    """Raised whenever the task's dynamics, reward or state change so that data recorded
+    before would differ: every D records it (``extra["task_revision"]``) and a collection
+    refuses to add to a D of another revision, whose steps would mix two tasks."""
 
     def __post_init__(self) -> None:
         if not TASK_NAME.match(self.name):
             raise TaskRegistrationError(f"a task's name is lower-case words joined by one "
                                         f"hyphen, like 'cup-catch'; got {self.name!r}")
+        if self.revision < 1:
+            raise TaskRegistrationError(f"task {self.name!r} needs a revision >= 1, got "
+                                        f"{self.revision}")
         if (self.environment is None) == bool(self.domain and self.task):
             return
         raise TaskRegistrationError(
@@ -136,7 +143,8 @@ for _spec in (
         # position (fingertips x y z, opening, block x y z), velocity (the same seven).
         TaskSpec("panda-lift", environment=functools.partial(_panda, True),
                  mirror=(1, -1, 1, 1, 1, -1, 1, 1, -1, 1, 1, 1, -1, 1),
-                 success=functools.partial(_panda_success, True))):
+                 success=functools.partial(_panda_success, True),
+                 revision=2)):  # 2: a grasp needs the fingers on the block's sides
     _REGISTERED[_spec.name] = _spec
 
 DEFAULT_TASK = "cartpole-balance"

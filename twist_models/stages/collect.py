@@ -491,6 +491,12 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
             if have != want:
                 raise CollectError(f"{str(out)!r} holds a dataset with {name} {have!r}, but this "
                                    f"run asks for {want!r}; use another --out")
+        # A D from before a change to the task's reward or dynamics reads as revision 1.
+        have, want = spec.extra.get("task_revision", 1), task_spec(config.task).revision
+        if have != want:
+            raise CollectError(f"{str(out)!r} holds {spec.task} revision {have}, but this "
+                               f"library's {spec.task} is revision {want} (its reward or "
+                               "dynamics changed since); use another --out")
     if path.exists() and not resume:
         raise CollectError(f"shard {path.name!r} already exists in {str(out)!r}; pass --resume "
                            "to continue it, or --shard to add another")
