@@ -14,8 +14,8 @@ Episodes last 600 control steps: 150 agent steps at action repeat 4, as the pape
 
 Rewards are dense and computed from privileged state, each term a dm_control ``tolerance``
 in [0, 1]: reaching the block, then the block's distance to the goal over 20 cm and over the
-last 5 cm (push), or the block's height with both fingers on its sides (lift). Pushing's fingers are
-fixed shut; lifting's slide. The materials are named as dm_control's, so that domain
+last 5 cm (push), or the block's height with both fingers on its sides (lift). Pushing's
+fingers are fixed shut; lifting's slide. The materials are named as dm_control's, so that domain
 randomisation recolours the robot (``self``), its hand and fingers (``effector``), the block
 (``decoration``), the goal marker (``target``) and the table (``grid``).
 """
