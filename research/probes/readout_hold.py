@@ -19,8 +19,10 @@ what the student loses by; if ``truth`` gains and ``mean`` / ``median`` do not, 
 shared by an episode's frames (a camera pose, a scene), which pooling cannot average out.
 
 ``python research/probes/readout_hold.py AGENT --hold 6,7 [--dr heldout,heldout-full]
-[--episodes 50] [--seed 0]`` (``--hold``: state indices; on panda-push 6,7 are the goal's x
-and y); prints one JSON line per preset and condition.
+[--episodes 50] [--seed 0] [--conditions as-is,truth]`` (``--hold``: state indices; on
+panda-push 6,7 are the goal's x and y); prints one JSON line per preset and condition.
+``--conditions as-is,truth`` alone asks which read components an episode's successes hang on,
+moving or not (on panda-lift 4,5,6 are the block's x, y and z).
 """
 
 from __future__ import annotations
@@ -81,9 +83,10 @@ def holding(slots: Sequence[int], indices: Sequence[int], condition: str) -> Ite
         yield
 
 
-def compare(path: str, hold: Sequence[int], drs: Sequence[str], episodes: int, seed: int
-            ) -> list[dict]:
-    """The student under every condition on the same episodes of each preset in ``drs``."""
+def compare(path: str, hold: Sequence[int], drs: Sequence[str], episodes: int, seed: int,
+            conditions: Sequence[str] = CONDITIONS) -> list[dict]:
+    """The student under each of ``conditions`` (``as-is`` always among them, first) on the
+    same episodes of each preset in ``drs``."""
     agent = load_agent(path)
     if not isinstance(agent, ImageAgent) or agent.agent.config.student.readout is None:
         raise SystemExit(f"{path} is not a read-out student (--recipe readout)")
@@ -97,7 +100,7 @@ def compare(path: str, hold: Sequence[int], drs: Sequence[str], episodes: int, s
         config = EvalConfig(task=agent.task, dr=dr, episodes=episodes,
                             action_repeat=agent.action_repeat)
         results = {}
-        for condition in CONDITIONS:
+        for condition in ["as-is", *(c for c in conditions if c != "as-is")]:
             with holding(slots, hold, condition):
                 # batch=10 steps episodes together, each on its own draws (evaluate's doc);
                 # one shared pool per batch is right because a batch's episodes start together.
@@ -129,13 +132,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("agent", help="a read-out student's agent.pt")
     parser.add_argument("--hold", required=True,
-                        help="comma-separated state indices an episode never changes")
+                        help="comma-separated state indices to pool or hand over true")
+    parser.add_argument("--conditions", default=",".join(CONDITIONS),
+                        help="comma-separated, of " + ", ".join(CONDITIONS) + " (as-is always runs)")
     parser.add_argument("--dr", default="heldout", help="comma-separated evaluation presets")
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     hold = [int(i) for i in args.hold.split(",")]
-    for entry in compare(args.agent, hold, args.dr.split(","), args.episodes, args.seed):
+    conditions = args.conditions.split(",")
+    unknown = sorted(set(conditions) - set(CONDITIONS))
+    if unknown:
+        raise SystemExit(f"unknown conditions {unknown}; choose from {', '.join(CONDITIONS)}")
+    for entry in compare(args.agent, hold, args.dr.split(","), args.episodes, args.seed,
+                         conditions):
         print(json.dumps(entry), flush=True)
 
 
