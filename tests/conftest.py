@@ -18,6 +18,30 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist (``-n``), each worker and the commands its tests start use one
+    thread: two workers of two threads on two cores stall each other at every barrier."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ["OMP_NUM_THREADS"] = "1"
+        import torch
+
+        torch.set_num_threads(1)
+
+
+#: The modules whose tests run whole pipelines (tens of seconds each), run first so that, with
+#: ``-n``, no worker is left with one of them while the others have finished.
+PIPELINE_MODULES = ("test_report", "test_gpu_slot", "test_gpu_script", "test_collect",
+                    "test_distil", "test_eval", "test_crash", "test_strip", "test_bad_input")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    def rank(item: pytest.Item) -> int:
+        name = item.path.stem
+        return PIPELINE_MODULES.index(name) if name in PIPELINE_MODULES else len(PIPELINE_MODULES)
+
+    items.sort(key=rank)
+
 SMALL = SynthConfig(episodes=6, steps=40, views=2, image_size=16, shards=2, length_jitter=12,
                     seed=3)
 
@@ -87,29 +111,45 @@ def load_script(path: Path) -> ModuleType:
     return module
 
 
+#: The console script each ``twist_cli`` module installs (pyproject's ``[project.scripts]``).
+ENTRY_POINTS = {"data": "main"}
+
+
 def run_command(module: str, *args: str) -> subprocess.CompletedProcess[str]:
-    """A ``twist-*`` command run in this process through its own error boundary
-    (:func:`twist_cli.common.run_app`), as ``python -m twist_cli.<module> ARGS`` runs it but
-    without starting an interpreter: its exit code and what it wrote to stderr. An error the
+    """``twist-<module> ARGS`` run in this process through the entry point its console script
+    calls, as ``python -m twist_cli.<module> ARGS`` runs it but without starting an
+    interpreter (~3 s with torch): its exit code, stdout and stderr, log lines included (the
+    entry point's log level, the format :func:`twist_cli.common.run_app` sets). An error the
     boundary does not turn into one line propagates, failing the test as a traceback would."""
     import contextlib
     import importlib
     import io
+    import logging
 
-    from twist_cli.common import run_app
-
-    app = importlib.import_module(f"twist_cli.{module}").app
-    stderr, code = io.StringIO(), 0
+    entry = getattr(importlib.import_module(f"twist_cli.{module}"),
+                    ENTRY_POINTS.get(module, "entry"))
+    stdout, stderr, code = io.StringIO(), io.StringIO(), 0
+    # A subprocess's basicConfig handler writes log lines to its stderr; pytest's own handler
+    # on the root logger keeps basicConfig from adding one here, so add it for the call.
+    handler = logging.StreamHandler(stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    loggers = [logging.getLogger(name) for name in ("twist_data", "twist_models")]
+    levels = [logger.level for logger in loggers]
+    logging.getLogger().addHandler(handler)
     argv = sys.argv
     sys.argv = [f"twist-{module}", *args]
     try:
-        with contextlib.redirect_stderr(stderr):
-            run_app(app)
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            entry()
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else 1
     finally:
         sys.argv = argv
-    return subprocess.CompletedProcess([module, *args], code, "", stderr.getvalue())
+        logging.getLogger().removeHandler(handler)
+        for logger, level in zip(loggers, levels, strict=True):
+            logger.setLevel(level)
+    return subprocess.CompletedProcess([module, *args], code, stdout.getvalue(),
+                                       stderr.getvalue())
 
 
 def run_script(script: str, out: Path, **settings: str) -> subprocess.CompletedProcess[str]:

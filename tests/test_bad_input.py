@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import zarr
 
+from tests.conftest import run_command
 from tests.test_writer import tree_snapshot
 from twist_data.errors import FormatVersionError, NotADatasetError, SchemaMismatchError
 from twist_data.reader import open_dataset
@@ -19,9 +19,8 @@ from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import verify_dataset
 
 
-def cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "twist_cli.data", *map(str, args)],
-                          capture_output=True, text=True)
+def cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return run_command("data", *map(str, args))
 
 
 def test_not_a_dataset(tmp_path: Path) -> None:

@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zarr
 
+from tests.conftest import run_command
 from twist_data.errors import DatasetCorruptError
 from twist_data.reader import open_dataset
 from twist_data.sampler import SamplerConfig, WindowSampler
@@ -181,8 +180,7 @@ def test_salvage_keeps_every_intact_episode_and_names_the_rest(dataset: Path,
     path, offset, _ = frame_location(shard, 14, 0)  # episode 1
     flip(path, offset)
     (shard / "data" / "state" / "c" / "6" / "0").unlink()  # steps 48-55: episode 4
-    result = subprocess.run([sys.executable, "-m", "twist_cli.data", "salvage", str(dataset),
-                             str(tmp_path / "kept")], capture_output=True, text=True)
+    result = run_command("data", "salvage", str(dataset), str(tmp_path / "kept"))
     assert result.returncode == 0, result.stderr
     assert "kept 3 of 5 episodes" in result.stdout
     left = [line for line in result.stderr.splitlines() if line.startswith("left behind")]
@@ -197,8 +195,7 @@ def test_salvage_keeps_every_intact_episode_and_names_the_rest(dataset: Path,
             np.testing.assert_array_equal(got.arrays()[key], value, err_msg=key)
         assert copy.episode_info(new).seed == info.seed
     assert copy.spec.extra["salvaged_from"] == str(dataset)
-    refused = subprocess.run([sys.executable, "-m", "twist_cli.data", "salvage", str(dataset),
-                              str(tmp_path / "kept")], capture_output=True, text=True)
+    refused = run_command("data", "salvage", str(dataset), str(tmp_path / "kept"))
     assert refused.returncode == 2 and "is not an empty folder" in refused.stderr
 
 

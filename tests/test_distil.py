@@ -278,9 +278,10 @@ def test_heldout_metrics_are_fixed_for_a_fixed_student(distil_inputs) -> None:
     assert latent_agreement(student, teacher, batch, config, 8) != once
 
 
-def _cli(*args: str, **kwargs) -> subprocess.CompletedProcess:
+def _fresh_cli(*args: str) -> subprocess.CompletedProcess:
+    """``twist-distil ARGS`` through a fresh interpreter, as a user runs it."""
     return subprocess.run([sys.executable, "-m", "twist_cli.distil", *args], text=True,
-                          capture_output=True, timeout=300, **kwargs)
+                          capture_output=True, timeout=300)
 
 
 def _rows(csv: Path) -> int:
@@ -353,14 +354,14 @@ def test_cli_resumes_after_sigkill_and_continues_the_count(distil_inputs, tmp_pa
     killed_at = int(torch.load(run / "latest.pt", weights_only=True)["counters"]["updates"])
     assert killed_at >= 2 and done is not None
 
-    result = _cli(*args, "--resume", "--steps", str(killed_at + 4))
+    result = run_command("distil", *args, "--resume", "--steps", str(killed_at + 4))
     assert result.returncode == 0, result.stderr
     summary = json.loads(result.stdout)
     assert summary["updates"] == killed_at + 4
     metrics = pd.read_csv(run / "metrics.csv")
     assert metrics["updates"].is_monotonic_increasing and metrics["updates"].iloc[-1] == killed_at + 4
     # Resuming with another config is refused, naming the field.
-    refused = _cli(*args, "--resume", "--length", "6")
+    refused = run_command("distil", *args, "--resume", "--length", "6")
     assert refused.returncode == 2 and "length was 8, now 6" in refused.stderr
 
 
@@ -368,13 +369,14 @@ def test_a_run_starts_from_a_recorded_config_with_overrides(distil_inputs, tmp_p
     dataset, teacher = distil_inputs
     base = ["--dataset", str(dataset), "--teacher", str(teacher), "--quiet"]
     first = tmp_path / "first"
-    done = _cli(*base, "--out", str(first), "--preset", "tiny", "--recipe", "dense",
-                "--steps", "2")
+    done = run_command("distil", *base, "--out", str(first), "--preset", "tiny", "--recipe",
+                       "dense", "--steps", "2")
     assert done.returncode == 0, done.stderr
     recorded = stored_config(first)
     second = tmp_path / "second"
-    result = _cli(*base, "--out", str(second), "--config", str(first / "config.json"),
-                  "--steps", "3", "--set", "optim.grad_clip=7", "--set", "lr=0.001")
+    result = run_command("distil", *base, "--out", str(second), "--config",
+                         str(first / "config.json"), "--steps", "3", "--set", "optim.grad_clip=7",
+                         "--set", "lr=0.001")
     assert result.returncode == 0, result.stderr
     # Every recorded field carries over (the dense recipe's included); the nested override
     # changes one field of the optimiser's config and keeps the others.
@@ -393,7 +395,7 @@ def test_a_run_starts_from_a_recorded_config_with_overrides(distil_inputs, tmp_p
     }
     for i, (expected_text, args) in enumerate(refusals.items()):
         out = tmp_path / f"refused-{i}"
-        refused = _cli(*base, "--out", str(out), *args)
+        refused = run_command("distil", *base, "--out", str(out), *args)
         lines = [line for line in refused.stderr.splitlines() if line.strip()]
         assert refused.returncode == 2 and len(lines) == 1, refused.stderr
         assert expected_text in lines[0], lines[0]
@@ -427,7 +429,7 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
     }
     # One case through a fresh interpreter, as a user runs it; the rest through the same
     # error boundary in this process.
-    result = _cli(*base, *cases["state_dim 7"])
+    result = _fresh_cli(*base, *cases["state_dim 7"])
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert "but the data has state_dim 5" in result.stderr
     for expected, args in cases.items():
@@ -440,8 +442,8 @@ def test_bad_inputs_are_refused_clearly(distil_inputs, tmp_path) -> None:
     shutil.copytree(dataset, no_images)
     for shard in no_images.glob("*.zarr"):
         shutil.rmtree(shard / "data" / "image")
-    result = _cli("--dataset", str(no_images), "--teacher", str(teacher), "--preset", "tiny",
-                  "--out", str(tmp_path / "e"), "--quiet")
+    result = run_command("distil", "--dataset", str(no_images), "--teacher", str(teacher),
+                         "--preset", "tiny", "--out", str(tmp_path / "e"), "--quiet")
     assert result.returncode == 2 and "no readable images" in result.stderr, result.stderr
     with pytest.raises(DistilError, match="already holds a distillation run"):
         (tmp_path / "f").mkdir()

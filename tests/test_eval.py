@@ -258,9 +258,8 @@ def test_agents_act_at_the_action_repeat_they_were_trained_at(gl, agents, tmp_pa
                        "action_repeat")
     # The CLI takes the agent's repeat: a whole episode of the task's 1,000 frames is 250
     # agent steps at repeat 4 (500 at the default 2).
-    result = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent",
-                             str(agents["teacher-repeat4"]), "--episodes", "1", "--out",
-                             str(tmp_path)], capture_output=True, text=True, timeout=300)
+    result = run_command("eval", "--agent", str(agents["teacher-repeat4"]), "--episodes", "1",
+                         "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     assert pd.read_csv(tmp_path / "episodes.csv")["steps"].tolist() == [250]
 
@@ -290,11 +289,9 @@ def test_reference_agents_score_what_their_actions_earn(gl, agents, tmp_path) ->
         load_agent("zero")
 
     # Beside a trained agent the CLI takes the task from it; reference rows are so marked.
-    result = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent",
-                             f"oracle={agents['teacher']}", "--agent", "zero", "--agent",
-                             "noise=random", "--episodes", "1", "--max-steps", "10",
-                             "--paired-with", "zero", "--out", str(tmp_path)],
-                            capture_output=True, text=True, timeout=300)
+    result = run_command("eval", "--agent", f"oracle={agents['teacher']}", "--agent", "zero",
+                         "--agent", "noise=random", "--episodes", "1", "--max-steps", "10",
+                         "--paired-with", "zero", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     table = pd.read_csv(tmp_path / "episodes.csv")
     assert dict(zip(table["agent"], table["kind"], strict=True)) == {
@@ -303,9 +300,7 @@ def test_reference_agents_score_what_their_actions_earn(gl, agents, tmp_path) ->
     summary = json.loads((tmp_path / "summary.json").read_text())["agents"]
     assert summary["noise"]["paired"]["mean"] == pytest.approx(returns["noise"] - returns["zero"])
     assert "paired" not in summary["zero"]
-    alone = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent", "zero",
-                            "--out", str(tmp_path / "alone")], capture_output=True, text=True,
-                           timeout=300)
+    alone = run_command("eval", "--agent", "zero", "--out", str(tmp_path / "alone"))
     assert alone.returncode == 2 and "pass --task" in alone.stderr, alone.stderr
 
 
@@ -437,17 +432,16 @@ def test_an_interrupted_evaluation_resumes_to_the_uninterrupted_result(tmp_path)
 
 
 def test_twist_eval_refuses_to_overwrite_an_evaluation_in_one_line(tmp_path) -> None:
-    args = [sys.executable, "-m", "twist_cli.eval", "--agent", "zero", "--task",
-            "cartpole-balance", "--dr", "none", "--episodes", "1", "--max-steps", "3",
-            "--out", str(tmp_path)]
-    assert subprocess.run(args, capture_output=True, text=True).returncode == 0
+    args = ["--agent", "zero", "--task", "cartpole-balance", "--dr", "none", "--episodes", "1",
+            "--max-steps", "3", "--out", str(tmp_path)]
+    assert run_command("eval", *args).returncode == 0
     before = (tmp_path / "episodes.csv").read_text()
-    refused = subprocess.run(args, capture_output=True, text=True)
+    refused = run_command("eval", *args)
     assert refused.returncode == 2 and refused.stderr.strip() == (
         f"error: {str(tmp_path)!r} already holds an evaluation (episodes.csv); pass --resume "
         "to continue it, or another --out")
     assert (tmp_path / "episodes.csv").read_text() == before
-    more = subprocess.run([*args, "--resume", "--episodes", "2"], capture_output=True, text=True)
+    more = run_command("eval", *args, "--resume", "--episodes", "2")
     assert more.returncode == 0, more.stderr
     assert len(pd.read_csv(tmp_path / "episodes.csv")) == 2
 

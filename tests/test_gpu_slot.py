@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -20,22 +21,32 @@ def carry(dataset: Path, out: Path, *args: str) -> subprocess.CompletedProcess[s
                            str(out), *args], capture_output=True, text=True)
 
 
-def test_the_slot_runs_from_a_carry_and_resumes(collected_tiny: Path, tmp_path: Path) -> None:
-    built = carry(collected_tiny, tmp_path / "carry")
+@pytest.fixture(scope="module")
+def carried(collected_tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A carry folder built by the kit from the tiny collected D (read-only: the slots only
+    read it)."""
+    out = tmp_path_factory.mktemp("carried") / "carry"
+    built = carry(collected_tiny, out)
     assert built.returncode == 0, built.stderr
-    assert sorted(p.name for p in (tmp_path / "carry").iterdir()) == ["dataset", "teacher.pt"]
+    return out
+
+
+def test_the_slot_runs_from_a_carry_and_resumes(collected_tiny: Path, carried: Path,
+                                                tmp_path: Path) -> None:
+    assert sorted(p.name for p in carried.iterdir()) == ["dataset", "teacher.pt"]
     teacher = (collected_tiny / "collect" / "collect-000" / "teacher.pt").stat().st_size
-    assert (tmp_path / "carry" / "teacher.pt").stat().st_size < teacher  # no optimiser states
+    assert (carried / "teacher.pt").stat().st_size < teacher  # no optimiser states
 
     out = tmp_path / "slot"
 
+    # One rebuild worker: a rebuild in several processes is tested in tests/test_strip.py.
     def slot() -> subprocess.CompletedProcess[str]:
         result = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_slot.sh"),
-                                 str(tmp_path / "carry"), str(out)],
+                                 str(carried), str(out)],
                                 env={**os.environ,
                                      "TWIST_VENV": sys.prefix, "PRESET": "tiny",
                                      "DEVICE": "cpu", "STEPS": "4", "SNAPSHOT_EVERY": "2",
-                                     "EVAL_EPISODES": "2", "WORKERS": "2"},
+                                     "EVAL_EPISODES": "2", "WORKERS": "1"},
                                 capture_output=True, text=True, timeout=900)
         assert result.returncode == 0, result.stderr[-3000:]
         return result
@@ -59,14 +70,13 @@ def test_the_slot_runs_from_a_carry_and_resumes(collected_tiny: Path, tmp_path: 
 
 
 def test_a_readout_slot_trains_on_frames_alone_and_evaluates_each_factor(
-        collected_tiny: Path, tmp_path: Path) -> None:
-    assert carry(collected_tiny, tmp_path / "carry").returncode == 0
+        carried: Path, tmp_path: Path) -> None:
     out = tmp_path / "slot"
-    result = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_slot.sh"), str(tmp_path / "carry"),
+    result = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_slot.sh"), str(carried),
                              str(out)],
                             env={**os.environ, "TWIST_VENV": sys.prefix, "PRESET": "tiny",
                                  "DEVICE": "cpu", "RECIPE": "readout", "EVAL_EPISODES": "2",
-                                 "WORKERS": "2", "FACTORS": "heldout,heldout-camera"},
+                                 "WORKERS": "1", "FACTORS": "heldout,heldout-camera"},
                             capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     results = sorted(p.name for p in (out / "results").iterdir())

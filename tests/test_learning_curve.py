@@ -3,13 +3,12 @@ the zero floor on the same held-out episodes, checked against independent evalua
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
+from tests.conftest import run_command
 from twist_models.distillation import distil_preset
 from twist_models.stages.distil import distil
 from twist_models.stages.evaluation import EvalConfig, run_evaluation
@@ -89,8 +88,6 @@ def test_a_resumed_curve_evaluates_only_new_snapshots(run: Path, collected_tiny:
 def test_a_run_without_snapshots_is_refused_in_one_line(tmp_path: Path) -> None:
     with pytest.raises(CurveError, match="holds no agent snapshot"):
         snapshots(tmp_path)
-    result = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--snapshots",
-                             str(tmp_path), "--out", str(tmp_path / "curve")],
-                            capture_output=True, text=True)
+    result = run_command("eval", "--snapshots", str(tmp_path), "--out", str(tmp_path / "curve"))
     assert result.returncode != 0 and "Traceback" not in result.stderr
     assert "holds no agent snapshot" in result.stderr and not (tmp_path / "curve").exists()

@@ -87,10 +87,15 @@ def test_acting_step_is_the_filters_posterior_on_one_thread() -> None:
     action = torch.rand(2, 3, 2)
     first = torch.tensor([[True, False, False]] * 2)
     uniform = torch.rand(2, 3, rssm.config.stoch, 1)
+    # Two threads outside the block, whatever the test run set (pytest -n runs on one), so
+    # that the restore below is a restore.
+    outside = torch.get_num_threads()
+    torch.set_num_threads(2)
     with torch.no_grad():
         post, _ = rssm.observe(embed, action, first, uniform=uniform)
         latent = rssm.initial(2)
         before = torch.get_num_threads()
+        assert before == 2
         with single_threaded():
             assert torch.get_num_threads() == 1
             for t in range(3):
@@ -102,6 +107,7 @@ def test_acting_step_is_the_filters_posterior_on_one_thread() -> None:
     with pytest.raises(RuntimeError), single_threaded():
         raise RuntimeError("the thread count is restored on errors too")
     assert torch.get_num_threads() == before
+    torch.set_num_threads(outside)
 
 
 def test_the_posterior_is_read_as_a_sample_its_mode_or_its_mean() -> None:

@@ -6,14 +6,13 @@ agent bundle and CLI."""
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from tests.conftest import run_command
 from twist_data.errors import ConfigError
 from twist_data.reader import open_dataset
 from twist_data.synth import SynthConfig, write_synthetic_dataset
@@ -304,10 +303,8 @@ def test_an_unknown_recipe_is_refused_in_one_line(inputs: tuple[Path, Path, Teac
                                                   tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="unknown recipe 'fast'; valid recipes are: paper"):
         distil_preset("quick", "fast")
-    result = subprocess.run(
-        [sys.executable, "-m", "twist_cli.distil", "--dataset", str(inputs[0]), "--out",
-         str(tmp_path / "run"), "--preset", "tiny", "--recipe", "fast"],
-        capture_output=True, text=True)
+    result = run_command("distil", "--dataset", str(inputs[0]), "--out", str(tmp_path / "run"),
+                         "--preset", "tiny", "--recipe", "fast")
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "unknown recipe 'fast'" in lines[0], result.stderr
@@ -316,10 +313,8 @@ def test_an_unknown_recipe_is_refused_in_one_line(inputs: tuple[Path, Path, Teac
 
 def test_a_badly_typed_setting_is_refused_in_one_line(inputs: tuple[Path, Path, Teacher],
                                                       tmp_path: Path) -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "twist_cli.distil", "--dataset", str(inputs[0]), "--out",
-         str(tmp_path / "run"), "--preset", "tiny", "--set", "batch_size=abc"],
-        capture_output=True, text=True)
+    result = run_command("distil", "--dataset", str(inputs[0]), "--out", str(tmp_path / "run"),
+                         "--preset", "tiny", "--set", "batch_size=abc")
     assert result.returncode == 2
     assert result.stderr.strip() == "error: --set batch_size must be an integer, got 'abc'"
     assert not (tmp_path / "run").exists()

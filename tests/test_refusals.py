@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.conftest import run_command
 from tests.test_writer import tree_snapshot
 from twist_cli import data
 from twist_data.errors import ConfigError, DatasetCorruptError, TwistError
@@ -196,9 +197,8 @@ def test_evaluation_options_are_refused_before_its_folder_is_made(tmp_path: Path
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the refusal is for a torch without CUDA")
 def test_evaluation_on_a_missing_gpu_is_one_line(tmp_path: Path) -> None:
-    result = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent", "zero", "--task",
-                             "cartpole-balance", "--device", "cuda", "--out", tmp_path / "e"],
-                            capture_output=True, text=True)
+    result = run_command("eval", "--agent", "zero", "--task", "cartpole-balance", "--device",
+                         "cuda", "--out", str(tmp_path / "e"))
     one_line_refusal(result, "device 'cuda' is not available")
     assert list(tmp_path.iterdir()) == []
 

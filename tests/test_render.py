@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -648,8 +646,7 @@ def test_a_dataset_from_another_camera_pose_is_not_re_rendered(sim_dataset: Path
 
 def test_rerender_cli_errors_leave_no_output(small_dataset: Path, tmp_path: Path) -> None:
     out = tmp_path / "never"
-    result = subprocess.run([sys.executable, "-m", "twist_cli.data", "render", str(small_dataset),
-                             str(out)], capture_output=True, text=True)
+    result = run_command("data", "render", str(small_dataset), str(out))
     assert result.returncode == 2
     assert result.stderr.strip().startswith("error: unknown task 'synthetic-cartpole'")
     assert "Traceback" not in result.stderr and not out.exists()
@@ -657,9 +654,10 @@ def test_rerender_cli_errors_leave_no_output(small_dataset: Path, tmp_path: Path
 
 def test_record_cli_writes_a_verifiable_deterministic_dataset(tmp_path: Path, gl: None) -> None:
     def record(out: Path) -> None:
-        subprocess.run([sys.executable, "-m", "twist_cli.data", "record", "cup-catch", str(out),
-                        "--episodes", "2", "--max-steps", "4", "--image-size", "16", "--dr",
-                        "heldout-full", "--seed", "7"], check=True, capture_output=True)
+        done = run_command("data", "record", "cup-catch", str(out), "--episodes", "2",
+                           "--max-steps", "4", "--image-size", "16", "--dr", "heldout-full",
+                           "--seed", "7")
+        assert done.returncode == 0, done.stderr
 
     record(tmp_path / "a")
     record(tmp_path / "b")

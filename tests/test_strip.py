@@ -4,12 +4,12 @@ the stored physics and DR draws, in one process or several."""
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.conftest import run_command
 from twist_data.errors import ConfigError, ImagesStrippedError, NotADatasetError
 from twist_data.reader import open_dataset
 from twist_data.sampler import SamplerConfig, WindowSampler
@@ -163,8 +163,7 @@ def test_bad_requests_are_refused_before_anything_is_written(recorded: Path, str
 
 def test_the_cli_strips_and_rebuilds(recorded: Path, tmp_path: Path) -> None:
     def twist_data(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "twist_cli.data", *args],
-                              capture_output=True, text=True)
+        return run_command("data", *args)
 
     result = twist_data("strip", str(recorded), str(tmp_path / "s"))
     assert result.returncode == 0, result.stderr
