@@ -3,4 +3,5 @@
 set -euo pipefail
 . "$(dirname "$0")/bootstrap.sh"
 ruff check twist_data twist_models cli tests benchmarks research scripts
-python -m pytest "$@"
+# One worker per core (pytest-xdist); a later -n in "$@" wins, e.g. -n 0 for one process.
+python -m pytest -n auto "$@"
