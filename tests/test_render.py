@@ -22,12 +22,15 @@ from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
 from twist_models.checkpoint import CheckpointError
 from twist_models.teacher import find_teacher
+from twist_sim import backgrounds
 from twist_sim.backgrounds import (
     FAMILIES,
     background_files,
+    bank_cache_path,
     blobs,
     clouds,
     directory_bank,
+    draw_procedural,
     leaves,
     procedural_bank,
 )
@@ -60,6 +63,38 @@ def test_training_and_heldout_banks_share_no_texture(source: str) -> None:
     # Deterministic: the bank is a pure function of its arguments, and the seed matters.
     np.testing.assert_array_equal(procedural_bank(source, 50, 32).textures, train.textures)
     assert procedural_bank(source, 50, 32, seed=1).digest() != train.digest()
+
+
+def test_a_drawn_bank_is_kept_on_disk_for_the_next_process(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    procedural_bank.cache_clear()  # as a new process starts
+    drawn = draw_procedural("train", 6, 16, seed=2)
+    path = bank_cache_path("train", 6, 16, 2)
+    assert path.parent == tmp_path / "cache" / "twist" / "banks" and not path.exists()
+    first = procedural_bank("train", 6, 16, seed=2)
+    np.testing.assert_array_equal(first.textures, drawn)
+    np.testing.assert_array_equal(np.load(path), drawn)
+    # The next process reads the file and draws nothing.
+    procedural_bank.cache_clear()
+    with monkeypatch.context() as patch:
+        patch.setattr(backgrounds, "draw_procedural", lambda *a: pytest.fail("drawn again"))
+        again = procedural_bank("train", 6, 16, seed=2)
+    assert again.digest() == first.digest() and not again.textures.flags.writeable
+    # A file cut short (a crash mid-write elsewhere) is drawn again and replaced.
+    path.write_bytes(path.read_bytes()[:200])
+    procedural_bank.cache_clear()
+    np.testing.assert_array_equal(procedural_bank("train", 6, 16, seed=2).textures, drawn)
+    np.testing.assert_array_equal(np.load(path), drawn)
+    # Another size or seed is another file; a cache that cannot be written costs only time.
+    assert bank_cache_path("train", 6, 16, 3) != path != bank_cache_path("train", 6, 8, 2)
+    (tmp_path / "a-file").write_text("not a folder")  # even root cannot make folders in it
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "a-file"))
+    procedural_bank.cache_clear()
+    try:
+        np.testing.assert_array_equal(procedural_bank("train", 6, 16, seed=2).textures, drawn)
+    finally:
+        procedural_bank.cache_clear()
 
 
 def test_wide_bank_adds_two_families_to_train_in_turn() -> None:

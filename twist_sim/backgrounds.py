@@ -16,7 +16,9 @@ from __future__ import annotations
 import functools
 import hashlib
 import logging
+import os
 import shutil
+import tempfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -249,23 +251,65 @@ class BackgroundBank:
 def procedural_bank(source: str, count: int, size: int, seed: int = 0) -> BackgroundBank:
     """``count`` textures of ``size``² pixels from the families of ``source`` (:data:`FAMILIES`),
     taken in turn. Kept for the process's next request of the same bank (a `quick` D's takes
-    ~4.5 s to draw, and checking a bank's digest and then rendering with it asks twice); the
-    textures are read-only, so that no user of the shared bank can change another's."""
+    ~4.5 s to draw, and checking a bank's digest and then rendering with it asks twice), and
+    on disk for the next process (:func:`bank_cache_path`): every collection's render process,
+    evaluation and rebuild worker draws one. The textures are read-only, so that no user of
+    the shared bank can change another's."""
     if source not in FAMILIES:
         raise ConfigError(f"procedural background source must be one of {sorted(FAMILIES)}, "
                           f"got {source!r}")
     if count < 1 or size < 1:
         raise ConfigError(f"background count and size must be >= 1, got {count} and {size}")
     families = list(FAMILIES[source].items())
-    textures = np.empty((count, size, size, 3), np.uint8)
-    names = []
-    for i in range(count):
-        family, make = families[i % len(families)]
-        rng = np.random.default_rng([seed, i])
-        textures[i] = make(rng, size)
-        names.append(f"{family}/{seed}/{i}")
+    names = tuple(f"{families[i % len(families)][0]}/{seed}/{i}" for i in range(count))
+    path = bank_cache_path(source, count, size, seed)
+    textures = _read_cached(path, (count, size, size, 3))
+    if textures is None:
+        textures = draw_procedural(source, count, size, seed)
+        _write_cached(path, textures)
     textures.setflags(write=False)
-    return BackgroundBank(source, textures, tuple(names))
+    return BackgroundBank(source, textures, names)
+
+
+def draw_procedural(source: str, count: int, size: int, seed: int = 0) -> np.ndarray:
+    """The textures of :func:`procedural_bank`, drawn anew: [count, size, size, 3] uint8."""
+    families = list(FAMILIES[source].values())
+    textures = np.empty((count, size, size, 3), np.uint8)
+    for i in range(count):
+        textures[i] = families[i % len(families)](np.random.default_rng([seed, i]), size)
+    return textures
+
+
+#: What a drawn bank depends on besides its arguments: this module's code and the libraries
+#: that draw, so that a cached bank is never one that the code would no longer draw.
+_DRAWN_BY = hashlib.sha256(b"\0".join([Path(__file__).read_bytes(), cv2.__version__.encode(),
+                                        np.__version__.encode()])).hexdigest()[:16]
+
+
+def bank_cache_path(source: str, count: int, size: int, seed: int) -> Path:
+    """Where a drawn procedural bank is kept between processes: ``$XDG_CACHE_HOME`` (else
+    ``~/.cache``) ``/twist/banks/``, named by its arguments and what draws it."""
+    root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return root / "twist" / "banks" / f"{source}-{count}-{size}-{seed}-{_DRAWN_BY}.npy"
+
+
+def _read_cached(path: Path, shape: tuple[int, ...]) -> np.ndarray | None:
+    try:  # mapped, not read: a process pages in the textures it draws on
+        textures = np.asarray(np.load(path, mmap_mode="r", allow_pickle=False))
+    except (OSError, ValueError):  # absent, unreadable or cut short: drawn again
+        return None
+    return textures if textures.shape == shape and textures.dtype == np.uint8 else None
+
+
+def _write_cached(path: Path, textures: np.ndarray) -> None:
+    # Written aside and renamed: a process reading the same bank sees all of it or none.
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as f:
+            np.save(f, textures, allow_pickle=False)
+        os.replace(f.name, path)
+    except OSError as exc:  # a read-only home: every process draws its own
+        log.debug("background bank not cached at %s: %s", path, exc)
 
 
 def _square(image: np.ndarray, size: int) -> np.ndarray:
