@@ -152,6 +152,27 @@ def run_command(module: str, *args: str) -> subprocess.CompletedProcess[str]:
                                        stderr.getvalue())
 
 
+def run_script_main(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """The Python script at ``path`` run in this process with ``args`` as its command line
+    (its ``main()``, as ``python PATH ARGS`` runs it): its exit code, stdout and stderr."""
+    import contextlib
+    import io
+
+    main = load_script(path).main
+    stdout, stderr, code = io.StringIO(), io.StringIO(), 0
+    argv = sys.argv
+    sys.argv = [str(path), *args]
+    try:
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            main()
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    finally:
+        sys.argv = argv
+    return subprocess.CompletedProcess([str(path), *args], code, stdout.getvalue(),
+                                       stderr.getvalue())
+
+
 def run_script(script: str, out: Path, **settings: str) -> subprocess.CompletedProcess[str]:
     """``bash scripts/<script> <out>`` with ``settings`` in its environment, in the virtual
     environment that runs these tests (so the script installs nothing)."""

@@ -4,17 +4,15 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
 import h5py
 import numpy as np
 import pandas as pd
+import pytest
 
-from tests.conftest import SMALL
+from tests.conftest import SMALL, run_command
 from tests.test_bad_input import cli
 from twist_data.export import episode_strip, export_hdf5, export_video
 from twist_data.reader import open_dataset
@@ -84,11 +82,10 @@ def test_hdf5_export_holds_every_episode(small_dataset: Path, tmp_path: Path) ->
             np.testing.assert_array_equal(f["data/reward"][a:b], ep.reward)
 
 
-def test_help_keeps_the_bracketed_defaults() -> None:
+def test_help_keeps_the_bracketed_defaults(monkeypatch: pytest.MonkeyPatch) -> None:
     # Rich markup read "[random per step]" as a style tag and dropped it from the help.
-    for module, note in (("twist_cli.baseline", "[random per step]"),
-                         ("twist_cli.collect", "[train-wide]"),
-                         ("twist_cli.eval", "[the first agent's]")):
-        result = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True,
-                                text=True, env={**os.environ, "COLUMNS": "200"})
+    monkeypatch.setenv("COLUMNS", "200")
+    for module, note in (("baseline", "[random per step]"), ("collect", "[train-wide]"),
+                         ("eval", "[the first agent's]")):
+        result = run_command(module, "--help")
         assert result.returncode == 0 and note in result.stdout, (module, result.stdout)

@@ -13,12 +13,14 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+from tests.conftest import run_script_main
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def carry(dataset: Path, out: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu_carry.py"), str(dataset),
-                           str(out), *args], capture_output=True, text=True)
+    """``python scripts/gpu_carry.py DATASET OUT ARGS``, in this process."""
+    return run_script_main(ROOT / "scripts" / "gpu_carry.py", str(dataset), str(out), *args)
 
 
 @pytest.fixture(scope="module")
