@@ -480,6 +480,39 @@ def test_every_task_renders_randomised_views(task: str, gl: None) -> None:
 
 # -- rendering in a child process ------------------------------------------------------------
 
+def test_a_pair_shows_the_motion_a_tracking_camera_hides(gl: None) -> None:
+    env = TaskEnv("cheetah-run", 4, seed=0)
+    env.reset()
+    for _ in range(5):
+        env.step(np.zeros(env.action_dim))
+    current = env.physics_state()
+    previous = current.copy()
+    previous[1] -= 0.3  # the root 30 cm behind: physics is [time, qpos (rootx first), ...]
+    with DRRenderer("cheetah-run", dr_preset("train-wide-full"), 64, 2, 2) as r:
+        params = r.sampler(0).sample()
+        pair = r.render_pair(previous, current, params)
+        np.testing.assert_array_equal(pair[1], r.render(current, params))
+        # Its own render follows the body: the move hardly shows. Framed as the current step
+        # is, it does.
+        tracked = np.abs(r.render(previous, params).astype(np.int32) - pair[1]).mean()
+        moved = np.abs(pair[0].astype(np.int32) - pair[1]).mean()
+        assert moved > 3 * tracked > 0
+        still = r.render_pair(current, current, params)
+        np.testing.assert_array_equal(still[0], still[1])
+        np.testing.assert_array_equal(still[1], pair[1])  # the framing left nothing behind
+    # A camera that tracks nothing frames both alike: the pair is two direct renders.
+    env = TaskEnv("cartpole-balance", 4, seed=0)
+    env.reset()
+    first = env.physics_state()
+    second = env.step(np.ones(env.action_dim)).physics
+    with DRRenderer("cartpole-balance", dr_preset("train-wide-full"), 32, 2) as r:
+        params = r.sampler(1).sample()
+        pair = r.render_pair(first, second, params)
+        np.testing.assert_array_equal(pair[0], r.render(first, params))
+        np.testing.assert_array_equal(pair[1], r.render(second, params))
+        assert not np.array_equal(pair[0], pair[1])
+
+
 def test_render_process_records_the_same_episode_as_in_process(gl: None) -> None:
     env = TaskEnv("cartpole-balance", max_steps=15)
     recorded = []

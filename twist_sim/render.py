@@ -96,6 +96,11 @@ def _track(renderer: DRRenderer) -> None:
     _OPEN.add(renderer)
 
 
+#: Where MuJoCo's scene takes the cameras and lights from: a tracking camera's pose, and a
+#: tracking light's, follow the body in ``mj_forward``.
+_FRAMING = ("cam_xpos", "cam_xmat", "light_xpos", "light_xdir")
+
+
 class FrameRenderer(Protocol):
     """What recording needs of a renderer: :class:`DRRenderer` (in-process) or
     :class:`twist_sim.render_process.RenderProcess` (a child process, pipelined)."""
@@ -236,14 +241,31 @@ class DRRenderer:
         """Render the K views of ``physics`` under ``params`` ({name: [K, ...]}) -> [K, H, W, 3]."""
         return self.render_states([physics], [params], out=None if out is None else out[None])[0]
 
+    def render_pair(self, previous: np.ndarray, current: np.ndarray,
+                    params: Mapping[str, np.ndarray]) -> np.ndarray:
+        """The K views of the ``previous`` physics and of the ``current`` one, both under
+        ``params`` and framed by the current step's camera and lights -> [2, K, H, W, 3].
+
+        A tracking camera (cheetah's, walker's, hopper's) follows the body, so one frame
+        shows none of its speed, and D redraws its scene at every step, so two consecutive
+        frames of D share no scene; this pair differs by the body's motion alone. Its second
+        frame is :meth:`render` of ``current``, bit for bit (tested)."""
+        pair = np.empty((2, self.views, self.image_size, self.image_size, 3), np.uint8)
+        self.render_states([previous], [params], out=pair[:1], framed_by=[current])
+        self.render_states([current], [params], out=pair[1:])
+        return pair
+
     def render_states(self, physics: Sequence[np.ndarray],
                       params: Sequence[Mapping[str, np.ndarray]],
                       places: Sequence[int] | None = None,
-                      out: np.ndarray | None = None) -> np.ndarray:
+                      out: np.ndarray | None = None,
+                      framed_by: Sequence[np.ndarray] | None = None) -> np.ndarray:
         """Render the K views of several physics states, state i under ``params[i]`` in place
         ``places[i]`` (default i) of the ``states`` the framebuffer holds, and read them
         back at once -> [N, K, H, W, 3]. A batch of environments so saves N - 1 read-backs,
-        each of which waits for the GPU to finish drawing.
+        each of which waits for the GPU to finish drawing. With ``framed_by``, state i is
+        seen from where the camera and lights stood in physics ``framed_by[i]`` (see
+        :meth:`render_pair`).
 
         A frame depends on its place by at most one level in a few pixels (the rasteriser
         rounds at another offset): a state drawn in the same place is pixel-identical to
@@ -257,10 +279,19 @@ class DRRenderer:
         if min(places) < 0 or max(places) >= self.states or len(set(places)) != n:
             raise ConfigError(f"render_states places must be distinct and in [0, "
                               f"{self.states}), got {places}")
+        if framed_by is not None and len(framed_by) != n:
+            raise ConfigError(f"render_states needs one framing physics per state, got "
+                              f"{len(framed_by)} for {n} states")
         checked = [self._check_params(p) for p in params]
         self._gl.make_current()
         for i in range(n):
+            if framed_by is not None:
+                restore_physics(m, self.data, framed_by[i], self._task_rows, self.spec.name)
+                frame = [getattr(self.data, f).copy() for f in _FRAMING]
             restore_physics(m, self.data, physics[i], self._task_rows, self.spec.name)
+            if framed_by is not None:
+                for name, value in zip(_FRAMING, frame, strict=True):
+                    getattr(self.data, name)[:] = value
             for v in range(k):
                 for row, group in enumerate(self._groups):
                     if group >= 0:
