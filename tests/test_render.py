@@ -34,10 +34,16 @@ from twist_sim.backgrounds import (
     leaves,
     procedural_bank,
 )
-from twist_sim.randomisation import DR_PRESETS, DRConfig, DRSampler, dr_preset
+from twist_sim.randomisation import DR_PRESETS, VIEW_PARAMS, DRConfig, DRSampler, dr_preset
 from twist_sim.render import DRRenderer
 from twist_sim.render_process import RenderProcess, RenderProcessError
-from twist_sim.rerender import check_reproduction, render_blocks, rerender_dataset
+from twist_sim.rerender import (
+    check_reproduction,
+    render_blocks,
+    renderer_for_block,
+    reproduce_pairs,
+    rerender_dataset,
+)
 from twist_sim.rollout import random_policy, record_episode, simulated_spec
 from twist_sim.tasks import TaskEnv
 
@@ -511,6 +517,26 @@ def test_a_pair_shows_the_motion_a_tracking_camera_hides(gl: None) -> None:
         np.testing.assert_array_equal(pair[0], r.render(first, params))
         np.testing.assert_array_equal(pair[1], r.render(second, params))
         assert not np.array_equal(pair[0], pair[1])
+
+
+def test_pairs_from_stored_physics_end_on_the_stored_frame(collected_tiny: Path) -> None:
+    dataset = open_dataset(collected_tiny)
+    starts = dataset.episode_starts
+    steps = np.array([starts[0], starts[0] + 1, starts[1] + 7])
+    pairs = reproduce_pairs(dataset, steps)
+    stored = np.empty((3 * dataset.spec.views, *dataset.spec.image_shape), np.uint8)
+    views = np.arange(dataset.spec.views)
+    dataset.read_frames(np.repeat(steps, len(views)), np.tile(views, 3), stored)
+    np.testing.assert_array_equal(pairs[:, 1], stored.reshape(pairs[:, 1].shape))
+    np.testing.assert_array_equal(pairs[0, 0], pairs[0, 1])  # a first step has no step before
+    # cartpole's camera tracks nothing: the first frame is the step before, drawn as this one.
+    physics, params = dataset.column("physics"), {
+        p.name: dataset.column(f"dr/{p.name}") for p in VIEW_PARAMS}
+    block = render_blocks(dataset.spec)[0]
+    with renderer_for_block(dataset.spec.task, block) as renderer:
+        for i, step in enumerate(steps[1:], 1):
+            expected = renderer.render(physics[step - 1], {k: v[step] for k, v in params.items()})
+            np.testing.assert_array_equal(pairs[i, 0], expected)
 
 
 def test_render_process_records_the_same_episode_as_in_process(gl: None) -> None:

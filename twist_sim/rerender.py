@@ -98,6 +98,26 @@ def reproduce_frames(dataset: MatchingDataset, steps: np.ndarray) -> np.ndarray:
     return out
 
 
+def reproduce_pairs(dataset: MatchingDataset, steps: np.ndarray) -> np.ndarray:
+    """Each of global ``steps`` as a pair of one scene (:meth:`DRRenderer.render_pair`): the
+    step before drawn under this step's DR parameters and framing, then this step as stored
+    -> [n, 2, K, H, W, 3]. At an episode's first step both frames are the step itself."""
+    spec = dataset.spec
+    steps = np.asarray(steps, np.int64)
+    out = np.empty((steps.size, 2, spec.views, *spec.image_shape), np.uint8)
+    first = dataset.column("is_first")[steps].astype(bool)
+    physics = dataset.column("physics")
+    current, previous = physics[steps], physics[np.where(first, steps, steps - 1)]
+    params = {p.name: dataset.column(f"dr/{p.name}")[steps] for p in VIEW_PARAMS}
+    for block in render_blocks(spec):
+        start, stop = (int(v) for v in block["views"])
+        with renderer_for_block(spec.task, block) as renderer:
+            for i in range(steps.size):
+                out[i, :, start:stop] = renderer.render_pair(
+                    previous[i], current[i], {k: v[i, start:stop] for k, v in params.items()})
+    return out
+
+
 def check_reproduction(dataset: MatchingDataset, n_steps: int, seed: int = 0) -> list[str]:
     """Re-render ``n_steps`` random steps and list every view whose pixels differ from storage."""
     if n_steps < 0:
