@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import importlib.util
+import io
+import logging
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
@@ -41,6 +46,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         return PIPELINE_MODULES.index(name) if name in PIPELINE_MODULES else len(PIPELINE_MODULES)
 
     items.sort(key=rank)
+
 
 SMALL = SynthConfig(episodes=6, steps=40, views=2, image_size=16, shards=2, length_jitter=12,
                     seed=3)
@@ -115,62 +121,52 @@ def load_script(path: Path) -> ModuleType:
 ENTRY_POINTS = {"data": "main"}
 
 
-def run_command(module: str, *args: str) -> subprocess.CompletedProcess[str]:
-    """``twist-<module> ARGS`` run in this process through the entry point its console script
-    calls, as ``python -m twist_cli.<module> ARGS`` runs it but without starting an
-    interpreter (~3 s with torch): its exit code, stdout and stderr, log lines included (the
-    entry point's log level, the format :func:`twist_cli.common.run_app` sets). An error the
-    boundary does not turn into one line propagates, failing the test as a traceback would."""
-    import contextlib
-    import importlib
-    import io
-    import logging
-
-    entry = getattr(importlib.import_module(f"twist_cli.{module}"),
-                    ENTRY_POINTS.get(module, "entry"))
+def _run_in_process(main: Callable[[], None], argv: list[str]
+                    ) -> subprocess.CompletedProcess[str]:
+    """``main()`` with ``argv`` as ``sys.argv``: its exit code, stdout and stderr."""
     stdout, stderr, code = io.StringIO(), io.StringIO(), 0
-    # A subprocess's basicConfig handler writes log lines to its stderr; pytest's own handler
-    # on the root logger keeps basicConfig from adding one here, so add it for the call.
-    handler = logging.StreamHandler(stderr)
-    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
-    loggers = [logging.getLogger(name) for name in ("twist_data", "twist_models")]
-    levels = [logger.level for logger in loggers]
-    logging.getLogger().addHandler(handler)
-    argv = sys.argv
-    sys.argv = [f"twist-{module}", *args]
-    try:
-        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-            entry()
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    finally:
-        sys.argv = argv
-        logging.getLogger().removeHandler(handler)
-        for logger, level in zip(loggers, levels, strict=True):
-            logger.setLevel(level)
-    return subprocess.CompletedProcess([module, *args], code, stdout.getvalue(),
-                                       stderr.getvalue())
-
-
-def run_script_main(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    """The Python script at ``path`` run in this process with ``args`` as its command line
-    (its ``main()``, as ``python PATH ARGS`` runs it): its exit code, stdout and stderr."""
-    import contextlib
-    import io
-
-    main = load_script(path).main
-    stdout, stderr, code = io.StringIO(), io.StringIO(), 0
-    argv = sys.argv
-    sys.argv = [str(path), *args]
+    saved = sys.argv
+    sys.argv = argv
     try:
         with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
             main()
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else 1
     finally:
-        sys.argv = argv
-    return subprocess.CompletedProcess([str(path), *args], code, stdout.getvalue(),
-                                       stderr.getvalue())
+        sys.argv = saved
+    return subprocess.CompletedProcess(argv, code, stdout.getvalue(), stderr.getvalue())
+
+
+def run_command(module: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """``twist-<module> ARGS`` run in this process through the entry point its console script
+    calls, as ``python -m twist_cli.<module> ARGS`` runs it but without starting an
+    interpreter (~3 s with torch): its exit code, stdout and stderr, log lines included (the
+    entry point's log level, the format :func:`twist_cli.common.run_app` sets). An error the
+    boundary does not turn into one line propagates, failing the test as a traceback would."""
+    entry = getattr(importlib.import_module(f"twist_cli.{module}"),
+                    ENTRY_POINTS.get(module, "entry"))
+    # A subprocess's basicConfig handler writes log lines to its stderr; pytest's own handler
+    # on the root logger keeps basicConfig from adding one here, so add it for the call.
+    lines = io.StringIO()
+    handler = logging.StreamHandler(lines)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    loggers = [logging.getLogger(name) for name in ("twist_data", "twist_models")]
+    levels = [logger.level for logger in loggers]
+    logging.getLogger().addHandler(handler)
+    try:
+        result = _run_in_process(entry, [f"twist-{module}", *args])
+    finally:
+        logging.getLogger().removeHandler(handler)
+        for logger, level in zip(loggers, levels, strict=True):
+            logger.setLevel(level)
+    result.stderr = lines.getvalue() + result.stderr
+    return result
+
+
+def run_script_main(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """The Python script at ``path`` run in this process with ``args`` as its command line
+    (its ``main()``, as ``python PATH ARGS`` runs it): its exit code, stdout and stderr."""
+    return _run_in_process(load_script(path).main, [str(path), *args])
 
 
 def run_script(script: str, out: Path, **settings: str) -> subprocess.CompletedProcess[str]:
