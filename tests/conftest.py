@@ -10,6 +10,7 @@ import logging
 import os
 import subprocess
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -121,6 +122,13 @@ def load_script(path: Path) -> ModuleType:
 ENTRY_POINTS = {"data": "main"}
 
 
+def _show_warning(stream: io.StringIO) -> Callable[..., None]:
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        stream.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+    return show
+
+
 def _run_in_process(main: Callable[[], None], argv: list[str]
                     ) -> subprocess.CompletedProcess[str]:
     """``main()`` with ``argv`` as ``sys.argv``: its exit code, stdout and stderr."""
@@ -128,10 +136,21 @@ def _run_in_process(main: Callable[[], None], argv: list[str]
     saved = sys.argv
     sys.argv = argv
     try:
-        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        with (contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr),
+              warnings.catch_warnings()):
+            # The filters a fresh interpreter starts with, printing to the captured stderr
+            # (pytest's own capture would otherwise swallow what a user sees).
+            warnings.resetwarnings()
+            warnings.simplefilter("default")
+            for category in (DeprecationWarning, PendingDeprecationWarning, ImportWarning,
+                             ResourceWarning):
+                warnings.simplefilter("ignore", category)
+            warnings.showwarning = _show_warning(stderr)
             main()
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
+    except SystemExit as exc:  # as the interpreter exits: None is 0, a message goes to stderr
+        code = exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1
+        if not isinstance(exc.code, int | None):
+            stderr.write(f"{exc.code}\n")
     finally:
         sys.argv = saved
     return subprocess.CompletedProcess(argv, code, stdout.getvalue(), stderr.getvalue())

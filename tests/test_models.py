@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +81,17 @@ def test_rssm_shapes_with_extra_leading_dims() -> None:
     assert loss.shape == () and states["deter"].shape == (3, 6, c.deter)
 
 
+@pytest.fixture
+def two_threads() -> Iterator[None]:
+    """Two torch threads for the test, whatever the run set (``pytest -n`` runs on one), so
+    that a restored thread count is a restore."""
+    outside = torch.get_num_threads()
+    torch.set_num_threads(2)
+    yield
+    torch.set_num_threads(outside)
+
+
+@pytest.mark.usefixtures("two_threads")
 def test_acting_step_is_the_filters_posterior_on_one_thread() -> None:
     wm = WorldModel(teacher_preset("tiny", 5, 2).world_model)
     rssm = wm.rssm
@@ -87,10 +99,6 @@ def test_acting_step_is_the_filters_posterior_on_one_thread() -> None:
     action = torch.rand(2, 3, 2)
     first = torch.tensor([[True, False, False]] * 2)
     uniform = torch.rand(2, 3, rssm.config.stoch, 1)
-    # Two threads outside the block, whatever the test run set (pytest -n runs on one), so
-    # that the restore below is a restore.
-    outside = torch.get_num_threads()
-    torch.set_num_threads(2)
     with torch.no_grad():
         post, _ = rssm.observe(embed, action, first, uniform=uniform)
         latent = rssm.initial(2)
@@ -107,7 +115,6 @@ def test_acting_step_is_the_filters_posterior_on_one_thread() -> None:
     with pytest.raises(RuntimeError), single_threaded():
         raise RuntimeError("the thread count is restored on errors too")
     assert torch.get_num_threads() == before
-    torch.set_num_threads(outside)
 
 
 def test_the_posterior_is_read_as_a_sample_its_mode_or_its_mean() -> None:

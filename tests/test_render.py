@@ -87,11 +87,13 @@ def test_a_drawn_bank_is_kept_on_disk_for_the_next_process(
         patch.setattr(backgrounds, "draw_procedural", lambda *a: pytest.fail("drawn again"))
         again = procedural_bank("train", 6, 16, seed=2)
     assert again.digest() == first.digest() and not again.textures.flags.writeable
-    # A file cut short (a crash mid-write elsewhere) is drawn again and replaced.
-    path.write_bytes(path.read_bytes()[:200])
-    procedural_bank.cache_clear()
-    np.testing.assert_array_equal(procedural_bank("train", 6, 16, seed=2).textures, drawn)
-    np.testing.assert_array_equal(np.load(path), drawn)
+    # A file cut short or empty (a crash mid-write elsewhere) is drawn again and replaced.
+    for damaged in (path.read_bytes()[:200], b""):
+        path.write_bytes(damaged)
+        procedural_bank.cache_clear()
+        np.testing.assert_array_equal(procedural_bank("train", 6, 16, seed=2).textures, drawn)
+        np.testing.assert_array_equal(np.load(path), drawn)
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temporary file left
     # Another size or seed is another file; a cache that cannot be written costs only time.
     assert bank_cache_path("train", 6, 16, 3) != path != bank_cache_path("train", 6, 8, 2)
     (tmp_path / "a-file").write_text("not a folder")  # even root cannot make folders in it

@@ -263,10 +263,11 @@ def procedural_bank(source: str, count: int, size: int, seed: int = 0) -> Backgr
     families = list(FAMILIES[source].items())
     names = tuple(f"{families[i % len(families)][0]}/{seed}/{i}" for i in range(count))
     path = bank_cache_path(source, count, size, seed)
-    textures = _read_cached(path, (count, size, size, 3))
+    textures = None if path is None else _read_cached(path, (count, size, size, 3))
     if textures is None:
         textures = draw_procedural(source, count, size, seed)
-        _write_cached(path, textures)
+        if path is not None:
+            _write_cached(path, textures)
     textures.setflags(write=False)
     return BackgroundBank(source, textures, names)
 
@@ -286,17 +287,20 @@ _DRAWN_BY = hashlib.sha256(b"\0".join([Path(__file__).read_bytes(), cv2.__versio
                                         np.__version__.encode()])).hexdigest()[:16]
 
 
-def bank_cache_path(source: str, count: int, size: int, seed: int) -> Path:
+def bank_cache_path(source: str, count: int, size: int, seed: int) -> Path | None:
     """Where a drawn procedural bank is kept between processes: ``$XDG_CACHE_HOME`` (else
-    ``~/.cache``) ``/twist/banks/``, named by its arguments and what draws it."""
-    root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    ``~/.cache``) ``/twist/banks/``, named by its arguments and what draws it; None for a
+    user without a home, whose processes each draw their own."""
+    root = Path(os.environ.get("XDG_CACHE_HOME") or Path("~/.cache").expanduser())
+    if not root.is_absolute():
+        return None
     return root / "twist" / "banks" / f"{source}-{count}-{size}-{seed}-{_DRAWN_BY}.npy"
 
 
 def _read_cached(path: Path, shape: tuple[int, ...]) -> np.ndarray | None:
     try:  # mapped, not read: a process pages in the textures it draws on
         textures = np.asarray(np.load(path, mmap_mode="r", allow_pickle=False))
-    except (OSError, ValueError):  # absent, unreadable or cut short: drawn again
+    except (OSError, ValueError, EOFError):  # absent, unreadable or cut short: drawn again
         return None
     return textures if textures.shape == shape and textures.dtype == np.uint8 else None
 
@@ -306,7 +310,11 @@ def _write_cached(path: Path, textures: np.ndarray) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as f:
-            np.save(f, textures, allow_pickle=False)
+            try:
+                np.save(f, textures, allow_pickle=False)
+            except BaseException:  # a full disk or an interrupt: no 200 MB left behind
+                Path(f.name).unlink(missing_ok=True)
+                raise
         os.replace(f.name, path)
     except OSError as exc:  # a read-only home: every process draws its own
         log.debug("background bank not cached at %s: %s", path, exc)
