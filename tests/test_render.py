@@ -486,8 +486,6 @@ def test_every_task_renders_randomised_views(task: str, gl: None) -> None:
     assert not np.array_equal(images[0], images[1])
 
 
-# -- rendering in a child process ------------------------------------------------------------
-
 def test_a_pair_shows_the_motion_a_tracking_camera_hides(gl: None) -> None:
     env = TaskEnv("cheetah-run", 4, seed=0)
     env.reset()
@@ -540,6 +538,8 @@ def test_pairs_from_stored_physics_end_on_the_stored_frame(collected_tiny: Path)
             expected = renderer.render(physics[step - 1], {k: v[step] for k, v in params.items()})
             np.testing.assert_array_equal(pairs[i, 0], expected)
 
+
+# -- rendering in a child process ------------------------------------------------------------
 
 def test_render_process_records_the_same_episode_as_in_process(gl: None) -> None:
     env = TaskEnv("cartpole-balance", max_steps=15)
