@@ -71,6 +71,7 @@ def info(dataset: DatasetArg,
         ("shards", len(summary["shards"])), ("episodes", summary["episodes"]),
         ("steps", summary["steps"]), ("views K", summary["views"]),
         ("image shape", "x".join(map(str, summary["image_shape"]))),
+        ("frame pairs", "stored" if summary["frame_pairs"] else "-"),
         ("state / action / physics dims",
          f"{summary['state_dim']} / {summary['action_dim']} / {summary['physics_dim']}"),
         ("DR parameters", ", ".join(summary["dr_params"]) or "-"),
@@ -328,6 +329,11 @@ def render(
     episodes: Annotated[str | None, typer.Option(
         help="Comma-separated episode indices to re-render, negative from the end (default: "
              "all); each renders as it would in a full re-render.")] = None,
+    pairs: Annotated[bool, typer.Option(
+        help="Also store each step's frame pair, the step before drawn in the step's scene "
+             "(datasets.md, pair_image), from which the readout recipe reads the speeds no "
+             "single frame shows; --reproduce rebuilds the pairs a D stored without it.")
+        ] = False,
 ) -> None:
     """Re-render a simulated dataset's stored physics states under a new DR config into OUT,
     or with --reproduce rebuild its own images exactly."""
@@ -336,7 +342,8 @@ def render(
     chosen = None if episodes is None else parse_list(episodes, int, "--episodes")
     if reproduce:
         with progress_bar("rebuilding") as update:
-            report = reproduce_dataset(dataset, out_dir, workers, chosen, on_episode=update)
+            report = reproduce_dataset(dataset, out_dir, workers, chosen, on_episode=update,
+                                       pairs=True if pairs else None)
         gl = report.gl.get("gl_renderer", "an unknown GL")
         if report.exact:
             out.print(f"wrote {out_dir}: {report.episodes} episodes rebuilt in "
@@ -363,7 +370,7 @@ def render(
     with progress_bar("rendering") as update:
         rerender_dataset(dataset, out_dir, config, views=views, image_size=image_size,
                          add_views=add_views, supersample=supersample, seed=seed,
-                         episodes=chosen, on_episode=update)
+                         episodes=chosen, on_episode=update, pairs=pairs)
     out.print(f"wrote {out_dir}")
 
 

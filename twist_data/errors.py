@@ -39,6 +39,11 @@ class ImagesStrippedError(TwistError):
     reads images."""
 
 
+class PairsMissingError(TwistError):
+    """A dataset without frame pairs (``data/pair_image``) was given to something that reads
+    them."""
+
+
 class ShardLockedError(TwistError):
     """Another process is already writing this shard."""
 

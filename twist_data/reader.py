@@ -21,11 +21,14 @@ from twist_data.errors import (
     DatasetCorruptError,
     ImagesStrippedError,
     NotADatasetError,
+    PairsMissingError,
     SamplerConfigError,
     SchemaMismatchError,
 )
 from twist_data.schema import (
     EPISODE_COLUMNS,
+    FRAME_ARRAYS,
+    PAIR_IMAGE,
     POLICY_CODES,
     DatasetSpec,
     Episode,
@@ -44,6 +47,9 @@ from twist_data.storage import (
 )
 
 log = logging.getLogger(__name__)
+
+#: The paths of the frame arrays, whose chunk files are shard files of frames.
+FRAME_PATHS = tuple(f"data/{name}" for name in FRAME_ARRAYS)
 
 
 def _open_group(path: Path) -> zarr.Group:
@@ -85,7 +91,7 @@ class ShardReader:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self.name = self.path.name.removesuffix(".zarr")
-        self._frames: FrameReader | _ZarrFrameReader | None = None
+        self._frames: dict[str, FrameReader | _ZarrFrameReader] = {}
         self._load_metadata()
 
     def _load_metadata(self) -> None:
@@ -96,6 +102,8 @@ class ShardReader:
         self.layout = StorageLayout.from_json(block["layout"])
         self.attrs = dict(block)
         self.images = ImagesRecord.from_attrs(block)
+        #: Whether the shard stores frame pairs (``data/pair_image``, datasets.md §2).
+        self.has_pairs = self.images.stored and PAIR_IMAGE in self._group["data"]
         commit = block["commit"]
         self.n_episodes = int(commit["n_episodes"])
         self.n_steps = int(commit["n_steps"])
@@ -169,13 +177,13 @@ class ShardReader:
                 f"shard {self.path}: data/{key} holds {arr.shape[0]} steps, "
                 f"but {self.n_steps} are committed"
             )
-        if key == "image":
+        if key in FRAME_ARRAYS:
             out = np.empty((stop - start, *arr.shape[1:]), np.uint8)
             k = self.spec.views
             steps = np.repeat(np.arange(start, stop), k)
             views = np.tile(np.arange(k), stop - start)
             flat = out.reshape(-1, *arr.shape[2:])
-            self.read_frames(steps, views, flat, np.arange(flat.shape[0]))
+            self.read_frames(steps, views, flat, np.arange(flat.shape[0]), key)
             return out
         return self._read_rows(f"data/{key}", start, stop)
 
@@ -185,16 +193,17 @@ class ShardReader:
         return self.images.stored
 
     def read_frames(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
-                    rows: np.ndarray) -> None:
-        """Decode frame (``steps[i]``, ``views[i]``) of this shard into ``out[rows[i]]``; a
-        frame that cannot be decoded raises DatasetCorruptError naming its episode."""
+                    rows: np.ndarray, key: str = "image") -> None:
+        """Decode frame (``steps[i]``, ``views[i]``) of this shard's frame array ``key``
+        (``image`` or ``pair_image``) into ``out[rows[i]]``; a frame that cannot be decoded
+        raises DatasetCorruptError naming its episode."""
         if not self.has_images:
             raise ImagesStrippedError(stripped_message(self.path))
         try:
-            self.frames.read_into(steps, views, out, rows)
+            self.frame_reader(key).read_into(steps, views, out, rows)
         except FrameCorruptError as exc:
             raise DatasetCorruptError(
-                f"shard {self.name}, {self.where(exc.step)}, data/image: {exc}") from None
+                f"shard {self.name}, {self.where(exc.step)}, data/{key}: {exc}") from None
 
     def where(self, step: int) -> str:
         """``episode E (its step s)`` for step ``step`` of this shard."""
@@ -219,7 +228,7 @@ class ShardReader:
         zarr reads a missing chunk as its fill value (zeros), so only this check finds one.
         Format 1 writers skipped chunks of zeros, so there only image shard files count."""
         arr = self.array(key)
-        if start >= stop or not (self.layout.checksums or key == "data/image"):
+        if start >= stop or not (self.layout.checksums or key in FRAME_PATHS):
             return []
         rows = rows_per_file(arr)
         missing = []
@@ -268,19 +277,26 @@ class ShardReader:
 
     @property
     def frames(self) -> FrameReader | _ZarrFrameReader:
-        """Frame reader with ``read_into(steps, views, out, rows)``; direct when possible."""
-        if self._frames is None:
-            arr = self.array("data/image")
+        """:meth:`frame_reader` of ``image``."""
+        return self.frame_reader("image")
+
+    def frame_reader(self, key: str = "image") -> FrameReader | _ZarrFrameReader:
+        """Reader of frame array ``key`` with ``read_into(steps, views, out, rows)``; direct
+        when possible."""
+        reader = self._frames.get(key)
+        if reader is None:
+            arr = self.array(f"data/{key}")
             direct = frame_decoder(arr)
             if direct is None:
-                log.warning("shard %s: image layout not recognised, reading through zarr (slow)",
-                            self.path)
-                self._frames = _ZarrFrameReader(arr)
+                log.warning("shard %s: %s layout not recognised, reading through zarr (slow)",
+                            self.path, key)
+                reader = _ZarrFrameReader(arr)
             else:
                 decoder, checksum = direct
-                self._frames = FrameReader(arr, self.path / "data" / "image", decoder,
-                                           int(arr.shards[0]), checksum)
-        return self._frames
+                reader = FrameReader(arr, self.path / "data" / key, decoder,
+                                     int(arr.shards[0]), checksum)
+            self._frames[key] = reader
+        return reader
 
     def episode(self, index: int, images: bool = True) -> Episode:
         """Episode ``index`` of this shard, every array read; with ``images`` False its
@@ -291,7 +307,8 @@ class ShardReader:
                 f"shard {self.name} has {self.n_episodes} episodes; index {index} is out of range"
             )
         start, stop = int(self.episode_starts[index]), int(self.episode_ends[index])
-        data = {a.name: self.read(a.name, start, stop) for a in step_arrays(self.spec)
+        data = {a.name: self.read(a.name, start, stop)
+                for a in step_arrays(self.spec, self.has_pairs and images)
                 if images or a.name != "image"}
         if not images:
             data["image"] = np.empty((stop - start, 0, *self.spec.image_shape), np.uint8)
@@ -301,10 +318,10 @@ class ShardReader:
     def refresh(self) -> bool:
         """Re-read the commit record; returns True when new episodes were committed."""
         old_episodes = self.n_episodes
-        if self._frames is not None:
-            # Shard files at the end may have been replaced by the writer: remap lazily.
-            self._frames.close()
-            self._frames = None
+        # Shard files at the end may have been replaced by the writer: remap lazily.
+        for reader in self._frames.values():
+            reader.close()
+        self._frames = {}
         self._load_metadata()
         return self.n_episodes != old_episodes
 
@@ -353,6 +370,11 @@ class MatchingDataset:
                 raise SchemaMismatchError(
                     f"shards {full.name} and {stripped.name} cannot form one dataset: "
                     f"{stripped.name} was stripped of its images and {full.name} was not")
+            if shard.has_pairs != ref.has_pairs:
+                paired, single = (ref, shard) if ref.has_pairs else (shard, ref)
+                raise SchemaMismatchError(
+                    f"shards {paired.name} and {single.name} cannot form one dataset: "
+                    f"{paired.name} stores frame pairs and {single.name} does not")
             diff = ref.spec.differences(shard.spec)
             if diff:
                 raise SchemaMismatchError(
@@ -412,11 +434,11 @@ class MatchingDataset:
         Low-dimensional arrays are small (about 100 bytes per step) and are kept in memory;
         images are never loaded this way, use :meth:`read_frames`.
         """
-        if key == "image":
+        if key in FRAME_ARRAYS:
             raise SamplerConfigError("images are not loaded whole; use read_frames()")
         col = self._columns.get(key)
         if col is None:
-            names = {a.name for a in step_arrays(self.spec)}
+            names = {a.name for a in step_arrays(self.spec) if a.name not in FRAME_ARRAYS}
             if key not in names:
                 raise SamplerConfigError(f"unknown key {key!r}; valid: {', '.join(sorted(names))}")
             col = np.concatenate([s.read(key) for s in self.shards])
@@ -424,11 +446,14 @@ class MatchingDataset:
         return col
 
     def read_frames(self, steps: np.ndarray, views: np.ndarray, out: np.ndarray,
-                    rows: np.ndarray | None = None) -> None:
+                    rows: np.ndarray | None = None, key: str = "image") -> None:
         """Decode frame (global ``steps[i]``, ``views[i]``) into ``out[rows[i]]`` (out: [n, H, W, 3]).
 
-        ``rows`` defaults to ``0..n-1``.
+        ``rows`` defaults to ``0..n-1``; ``key`` ``pair_image`` reads the pair frames
+        (:meth:`require_pairs`).
         """
+        if key == PAIR_IMAGE:
+            self.require_pairs()
         self.require_images()
         rows = np.arange(steps.size) if rows is None else rows
         if np.any(views < 0) or np.any(views >= self.spec.views):
@@ -438,11 +463,11 @@ class MatchingDataset:
             )
         loc = self.locate(steps)
         if len(self.shards) == 1:
-            self.shards[0].read_frames(loc.step, views, out, rows)
+            self.shards[0].read_frames(loc.step, views, out, rows, key)
             return
         for s in np.unique(loc.shard).tolist():
             sel = loc.shard == s
-            self.shards[s].read_frames(loc.step[sel], views[sel], out, rows[sel])
+            self.shards[s].read_frames(loc.step[sel], views[sel], out, rows[sel], key)
 
     def frames_of_random_views(self, steps: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The frames of global ``steps`` [n], each from a view drawn uniformly by ``rng``:
@@ -461,6 +486,21 @@ class MatchingDataset:
         rebuilds the images when the dataset was stripped of them."""
         if not self.has_images:
             raise ImagesStrippedError(stripped_message(self.path, needed_by))
+
+    @property
+    def has_pairs(self) -> bool:
+        """Whether the dataset stores frame pairs, ``data/pair_image`` (every shard agrees)."""
+        return self.shards[0].has_pairs
+
+    def require_pairs(self, needed_by: str | None = None) -> None:
+        """Raise :class:`PairsMissingError` naming ``needed_by`` and the command that adds
+        the pairs when the dataset stores none (a stripped one: what rebuilds its images)."""
+        self.require_images(needed_by)
+        if not self.has_pairs:
+            who = f"{needed_by} needs" if needed_by else "reading them needs"
+            raise PairsMissingError(
+                f"{who} frame pairs of one scene, but dataset {str(self.path)!r} stores none; "
+                f"add them with: twist-data render {self.path} OUT --reproduce --pairs")
 
     def episode(self, index: int, images: bool = True) -> Episode:
         """Global episode ``index`` (episodes numbered over shards in shard-name order);

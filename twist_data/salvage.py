@@ -71,8 +71,8 @@ def salvage_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
                         spec = dataclasses.replace(shard.spec, extra={
                             **shard.spec.extra, "salvaged_from": str(Path(source))})
                         layout = dataclasses.replace(shard.layout, checksums=True)
-                        writer = writers[shard.name] = ShardWriter.create(out, shard.name, spec,
-                                                                          layout)
+                        writer = writers[shard.name] = ShardWriter.create(
+                            out, shard.name, spec, layout, pairs=shard.has_pairs)
                     writer.append(episode, info)
                     report.kept.append(index)
                 index += 1

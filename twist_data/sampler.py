@@ -27,7 +27,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from twist_data.errors import SamplerConfigError
 from twist_data.reader import MatchingDataset, open_dataset
-from twist_data.schema import step_arrays
+from twist_data.schema import FRAME_ARRAYS, PAIR_IMAGE, step_arrays
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +201,9 @@ class WindowSampler:
         problem = window_problem(self.dataset, 1, config.view)
         if problem is not None:
             raise SamplerConfigError(problem)
-        self._per_view = {a.name: a.per_view for a in step_arrays(spec)}
+        if PAIR_IMAGE in config.keys:
+            self.dataset.require_pairs("windows with frame pairs")
+        self._per_view = {a.name: a.per_view for a in step_arrays(spec, self.dataset.has_pairs)}
         unknown = [k for k in config.keys if k not in self._per_view]
         if unknown:
             raise SamplerConfigError(
@@ -237,7 +239,8 @@ class WindowSampler:
                 f"the dataset has {self.total_windows} windows of length {self.config.length}, "
                 f"fewer than the {self.n_streams} sampler streams"
             )
-        self._columns = {k: self.dataset.column(k) for k in self.config.keys if k != "image"}
+        self._columns = {k: self.dataset.column(k) for k in self.config.keys
+                         if k not in FRAME_ARRAYS}
         self.cache.clear(self.dataset.n_steps * self.dataset.spec.views)
 
     def refresh(self) -> int:
@@ -307,6 +310,11 @@ class WindowSampler:
                 frames = image_out.reshape(b * length, *shape[2:])
                 self.cache.fetch(self.dataset, steps.ravel(), views.ravel(), frames)
                 out[key] = image_out
+            elif key == PAIR_IMAGE:  # each step's pair frame in the view its image shows
+                pair = np.empty((b, length, *self.dataset.spec.image_shape), np.uint8)
+                self.dataset.read_frames(steps.ravel(), views.ravel(),
+                                         pair.reshape(b * length, *pair.shape[2:]), key=key)
+                out[key] = pair
             elif self._per_view[key]:
                 out[key] = self._columns[key][steps, views]
             else:
@@ -338,10 +346,12 @@ class ResidentWindows:
         data, self.device = self.sampler.dataset, torch.device(device)
         self.columns: dict[str, torch.Tensor] = {}
         for key in config.keys:
-            if key == "image":
+            if key in FRAME_ARRAYS:
                 continue
             self.columns[key] = torch.as_tensor(data.column(key)).to(self.device)
-        self.images = resident_images(data, self.device) if "image" in config.keys else None
+        self.frames = {key: resident_images(data, self.device, key) for key in FRAME_ARRAYS
+                       if key in config.keys}
+        self.images = self.frames.get("image")
 
     def batch(self) -> dict[str, torch.Tensor]:
         """The next batch as tensors on the device, keys as :meth:`WindowSampler.batch`."""
@@ -350,8 +360,8 @@ class ResidentWindows:
         view = torch.as_tensor(views, device=self.device)
         out: dict[str, torch.Tensor] = {}
         for key in self.sampler.config.keys:
-            if key == "image":
-                out[key] = self.images[index, view]
+            if key in self.frames:
+                out[key] = self.frames[key][index, view]
             elif self.sampler._per_view[key]:
                 out[key] = self.columns[key][index, view]
             else:
@@ -365,16 +375,17 @@ class ResidentWindows:
             yield self.batch()
 
 
-def resident_images(dataset: MatchingDataset, device: torch.device | str = "cpu") -> torch.Tensor:
-    """Every image of ``dataset`` decoded once -> uint8 [steps, views, H, W, 3] on ``device``
-    (``resident_bytes(dataset, ("image",))`` bytes)."""
+def resident_images(dataset: MatchingDataset, device: torch.device | str = "cpu",
+                    key: str = "image") -> torch.Tensor:
+    """Every frame of ``dataset``'s frame array ``key`` decoded once -> uint8 [steps, views,
+    H, W, 3] on ``device`` (``resident_bytes(dataset, (key,))`` bytes)."""
     spec = dataset.spec
     images = np.empty((dataset.n_steps, spec.views, *spec.image_shape), np.uint8)
     chunk = np.empty((4096, *spec.image_shape), np.uint8)  # readers fill contiguous rows
     for view in range(spec.views):
         for lo in range(0, dataset.n_steps, len(chunk)):
             steps = np.arange(lo, min(lo + len(chunk), dataset.n_steps))
-            dataset.read_frames(steps, np.full(steps.size, view), chunk[:steps.size])
+            dataset.read_frames(steps, np.full(steps.size, view), chunk[:steps.size], key=key)
             images[steps, view] = chunk[:steps.size]
     return torch.from_numpy(images).to(device)
 
@@ -382,10 +393,10 @@ def resident_images(dataset: MatchingDataset, device: torch.device | str = "cpu"
 def resident_bytes(dataset: MatchingDataset, keys: tuple[str, ...]) -> int:
     """Bytes a :class:`ResidentWindows` copy of ``dataset``'s ``keys`` takes."""
     spec, total = dataset.spec, 0
-    for array in step_arrays(spec):
+    for array in step_arrays(spec, dataset.has_pairs):
         if array.name not in keys:
             continue
-        if array.name == "image":
+        if array.name in FRAME_ARRAYS:
             total += dataset.n_steps * spec.views * int(np.prod(spec.image_shape))
         else:
             total += dataset.column(array.name).nbytes

@@ -157,12 +157,27 @@ class ArraySpec:
         return f"data/{self.name}"
 
 
-def step_arrays(spec: DatasetSpec) -> tuple[ArraySpec, ...]:
-    """Every per-step array of a shard with this spec, in a fixed order."""
+#: The optional per-step array of frame pairs (datasets.md, §2 ``pair_image``).
+PAIR_IMAGE = "pair_image"
+#: The per-step arrays of frames: stored as ``image`` is, one frame per step and view.
+FRAME_ARRAYS = ("image", PAIR_IMAGE)
+
+
+def pair_array(spec: DatasetSpec) -> ArraySpec:
+    """``data/pair_image``: per step and view, the step before drawn under this step's draw."""
+    return ArraySpec(PAIR_IMAGE, "uint8", (spec.views, *spec.image_shape), True, "RGB 0-255",
+                     "the step before drawn under view k's DR draw of this step (this step "
+                     "itself where is_first): with image, a pair of one scene")
+
+
+def step_arrays(spec: DatasetSpec, pairs: bool = False) -> tuple[ArraySpec, ...]:
+    """Every per-step array of a shard with this spec, in a fixed order; ``pairs``: the
+    shard also stores :func:`pair_array`."""
     k = spec.views
     core = (
         ArraySpec("image", "uint8", (k, *spec.image_shape), True, "RGB 0-255",
                   "K domain-randomised renders of the instant of state[t]"),
+        *((pair_array(spec),) if pairs else ()),
         ArraySpec("state", "float32", (spec.state_dim,), False, "task units",
                   "privileged state s_t (flattened simulator observation)"),
         ArraySpec("physics", "float64", (spec.physics_dim,), False, "simulator units",
@@ -228,6 +243,9 @@ class ImagesRecord:
     """Bytes the image array took on disk before it was stripped."""
     stripped_from: str = ""
     """The dataset the stripped shard was copied from."""
+    pairs: bool = False
+    """Whether the shard stored frame pairs (``data/pair_image``) before it was stripped:
+    ``twist-data render --reproduce`` then rebuilds them too."""
 
     @classmethod
     def from_attrs(cls, block: Mapping[str, Any]) -> ImagesRecord:
@@ -236,11 +254,13 @@ class ImagesRecord:
             return cls()
         return cls(stored=bool(raw["stored"]), sha256=tuple(raw.get("sha256", ())),
                    stored_bytes=int(raw.get("stored_bytes", 0)),
-                   stripped_from=str(raw.get("stripped_from", "")))
+                   stripped_from=str(raw.get("stripped_from", "")),
+                   pairs=bool(raw.get("pairs", False)))
 
     def to_json(self) -> dict[str, Any]:
         return {"stored": self.stored, "sha256": list(self.sha256),
-                "stored_bytes": self.stored_bytes, "stripped_from": self.stripped_from}
+                "stored_bytes": self.stored_bytes, "stripped_from": self.stripped_from,
+                "pairs": self.pairs}
 
 
 def image_digest(images: np.ndarray) -> str:
@@ -282,6 +302,9 @@ class Episode:
     """[T] bool."""
     dr: Mapping[str, np.ndarray] = field(default_factory=dict)
     """Per-step per-view DR parameters, each [T, K, *shape]."""
+    pair_image: np.ndarray | None = None
+    """[T, K, H, W, 3] uint8: each step's pair frames (:func:`pair_array`), or None where the
+    dataset stores none."""
 
     def __len__(self) -> int:
         return int(self.reward.shape[0])
@@ -292,7 +315,8 @@ class Episode:
 
     def arrays(self) -> dict[str, np.ndarray]:
         """All per-step arrays keyed by their name under ``data/``."""
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "dr"}
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+               if f.name != "dr" and getattr(self, f.name) is not None}
         out.update({f"dr/{k}": v for k, v in self.dr.items()})
         return out
 
@@ -319,14 +343,16 @@ class EpisodeInfo:
             )
 
 
-def episode_problems(episode: Episode, info: EpisodeInfo, spec: DatasetSpec) -> list[str]:
-    """Every way ``episode`` breaks the format for ``spec``; empty when it is valid."""
+def episode_problems(episode: Episode, info: EpisodeInfo, spec: DatasetSpec,
+                     pairs: bool = False) -> list[str]:
+    """Every way ``episode`` breaks the format for ``spec`` (with frame pairs where ``pairs``);
+    empty when it is valid."""
     problems: list[str] = []
     arrays = episode.arrays()
     t = len(episode)
     if t < 1:
         return ["episode has no steps"]
-    expected = {a.path[len("data/"):]: a for a in step_arrays(spec)}
+    expected = {a.path[len("data/"):]: a for a in step_arrays(spec, pairs)}
     for name in sorted(set(arrays) - set(expected)):
         problems.append(f"array {name!r} is not in the dataset spec")
     for name, a in expected.items():

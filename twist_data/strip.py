@@ -21,7 +21,7 @@ import zarr
 
 from twist_data.errors import ConfigError
 from twist_data.reader import ShardReader, open_dataset
-from twist_data.schema import ATTRS_KEY, IMAGES_KEY, ImagesRecord, image_digest
+from twist_data.schema import ATTRS_KEY, FRAME_ARRAYS, IMAGES_KEY, ImagesRecord, image_digest
 from twist_data.staging import built_aside, require_new_folder
 
 log = logging.getLogger(__name__)
@@ -74,20 +74,22 @@ def strip_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
 
 
 def _copy_shard(shard: ShardReader, dest: Path, digests: list[str], source: Path) -> None:
-    image_dir = shard.path / "data" / "image"
-    image_bytes = sum(f.stat().st_size for f in image_dir.rglob("*") if f.is_file())
+    # Frame pairs go too: the rebuild that restores the images redraws them (ImagesRecord.pairs).
+    frames = [n for n in FRAME_ARRAYS if (shard.path / "data" / n).is_dir()]
+    image_bytes = sum(f.stat().st_size for n in frames
+                      for f in (shard.path / "data" / n).rglob("*") if f.is_file())
 
     def ignore(folder: str, names: list[str]) -> list[str]:
         skipped = [n for n in names if n in SKIPPED or n.endswith(".partial")]
         if Path(folder) == shard.path / "data":
-            skipped.append("image")
+            skipped.extend(frames)
         return skipped
 
     shutil.copytree(shard.path, dest, ignore=ignore)
     group = zarr.open_group(dest, mode="r+")
     block = dict(group.attrs[ATTRS_KEY])
     record = ImagesRecord(stored=False, sha256=tuple(digests), stored_bytes=image_bytes,
-                          stripped_from=str(source))
+                          stripped_from=str(source), pairs=shard.has_pairs)
     block[IMAGES_KEY] = record.to_json()
     group.attrs[ATTRS_KEY] = block
 

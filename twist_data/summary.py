@@ -16,7 +16,7 @@ def dataset_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     ds = open_dataset(path)
     spec = ds.spec
     raw = 0
-    for a in step_arrays(spec):
+    for a in step_arrays(spec, ds.has_pairs):
         raw += ds.n_steps * int(np.prod(a.trailing, dtype=np.int64)) * np.dtype(a.dtype).itemsize
     disk = ds.disk_bytes()
     lengths = ds.episode_lengths
@@ -31,6 +31,7 @@ def dataset_info(path: str | os.PathLike[str]) -> dict[str, Any]:
         "steps": ds.n_steps,
         "views": spec.views,
         "image_shape": list(spec.image_shape),
+        "frame_pairs": ds.has_pairs,
         "state_dim": spec.state_dim,
         "action_dim": spec.action_dim,
         "physics_dim": spec.physics_dim,

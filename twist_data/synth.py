@@ -3,7 +3,10 @@
 A small cart-pole-like system is simulated and drawn with procedural, per-view randomised
 backgrounds, so images are textured (compress like renders, not like constant frames) and
 every frame can be re-rendered exactly from the stored physics state and DR parameters
-(:func:`render_synthetic`), as a real collector's frames can.
+(:func:`render_synthetic`), as a real collector's frames can. Its ``tracked`` variant is seen
+by a camera that follows the cart, as DMC's follow a runner: the state holds no cart
+position, and its speed shows only as the motion between two frames of one scene, which the
+dataset stores as frame pairs (``pair_image``).
 """
 
 from __future__ import annotations
@@ -26,6 +29,11 @@ from twist_data.writer import ShardWriter
 log = logging.getLogger(__name__)
 
 SYNTH_TASK = "synthetic-cartpole"
+#: The tracked variant's task name (:attr:`SynthConfig.tracked`).
+SYNTH_TRACKED_TASK = "synthetic-cartpole-tracked"
+#: Background pixels per unit of cart position where the camera tracks the cart: a step at
+#: a typical speed moves the scene by a few pixels.
+_TRACKED_SHIFT = 6.0
 #: The synthetic state's signs in the mirrored picture (drawn about the image's centre
 #: column): x, cos, sin | x_dot, theta_dot, as cartpole-balance's ``TaskSpec.mirror``.
 SYNTH_MIRROR = (-1.0, 1.0, -1.0, -1.0, -1.0)
@@ -50,6 +58,9 @@ class SynthConfig:
     """Episodes are shortened by up to this many steps; shortened ones end terminally."""
     seed: int = 0
     """Seed of everything: the data is a pure function of the config."""
+    tracked: bool = False
+    """A camera that follows the cart: the state is (cos, sin | x_dot, theta_dot), the cart is
+    drawn at the centre with the scene shifted by its position, and D stores frame pairs."""
 
     def __post_init__(self) -> None:
         problems = []
@@ -66,25 +77,28 @@ class SynthConfig:
             raise ValueError("; ".join(problems))
 
 
-def synth_spec(views: int = 2, image_size: int = 64) -> DatasetSpec:
-    """The dataset spec of synthetic data (state and physics laid out like DMC cartpole)."""
+def synth_spec(views: int = 2, image_size: int = 64, tracked: bool = False) -> DatasetSpec:
+    """The dataset spec of synthetic data (state and physics laid out like DMC cartpole; the
+    ``tracked`` variant's state without the cart's position)."""
     return DatasetSpec(
         views=views, image_height=image_size, image_width=image_size,
-        state_dim=5, action_dim=1, physics_dim=4, task=SYNTH_TASK, action_repeat=1,
+        state_dim=4 if tracked else 5, action_dim=1, physics_dim=4,
+        task=SYNTH_TRACKED_TASK if tracked else SYNTH_TASK, action_repeat=1,
         dr_params=(
             ParamSpec("background_seed", (), "int64", "seed of the procedural background"),
             ParamSpec("agent_rgb", (3,), "float32", "RGB colour of cart and pole, 0-1"),
             ParamSpec("brightness", (), "float32", "light intensity multiplier"),
         ),
         episode_dr_params=(ParamSpec("pole_mass_scale", (), "float32", "pole mass multiplier"),),
-        state_layout=(("position", 3), ("velocity", 2)),
+        state_layout=(("position", 2 if tracked else 3), ("velocity", 2)),
         extra={"generator": "twist_data.synth"},
     )
 
 
 def render_synthetic(physics: np.ndarray, background_seed: int, agent_rgb: np.ndarray,
-                     brightness: float, size: int) -> np.ndarray:
-    """Draw one view of the state ``physics`` = [x, theta, x_dot, theta_dot] -> [size, size, 3]."""
+                     brightness: float, size: int, tracked: bool = False) -> np.ndarray:
+    """Draw one view of the state ``physics`` = [x, theta, x_dot, theta_dot] -> [size, size, 3]
+    (``tracked``: the cart at the centre, the scene shifted by its position)."""
     rng = np.random.default_rng(int(background_seed))
     cells = int(rng.integers(2, 9))
     low = rng.integers(0, 256, (cells, cells, 3), dtype=np.uint8)
@@ -96,6 +110,10 @@ def render_synthetic(physics: np.ndarray, background_seed: int, agent_rgb: np.nd
     floor = int(size * 0.8)
     image[floor:] = (90, 90, 90)
     x, theta = float(physics[0]), float(physics[1])
+    if tracked:  # the floor's stripes and the background move past a cart held at the centre
+        image[floor:, (xx[0] // 4) % 2 == 0] = (60, 60, 60)
+        image = np.roll(image, -round(x * _TRACKED_SHIFT * size), axis=1)
+        x = 0.0
     colour = tuple(int(c) for c in np.round(np.asarray(agent_rgb, np.float64) * 255))
     cx = round(size / 2 + x * size / 6)
     cy = floor - size // 16
@@ -129,6 +147,9 @@ def synth_episode(spec: DatasetSpec, seed: int, length: int,
         physics[t] = [x + _DT * xd, th + _DT * thd, xd, thd]
     x, th = physics[:, 0], physics[:, 1]
     state = np.stack([x, np.cos(th), np.sin(th), physics[:, 2], physics[:, 3]], 1)
+    tracked = spec.task == SYNTH_TRACKED_TASK
+    if tracked:
+        state = state[:, 1:]
     reward = ((np.cos(th) + 1) / 2 * np.exp(-(x**2))).astype(np.float32)
     reward[0] = 0.0
     flags = np.zeros(length, bool)
@@ -140,15 +161,19 @@ def synth_episode(spec: DatasetSpec, seed: int, length: int,
     agent_rgb = rng.uniform(0.1, 1.0, (length, k, 3)).astype(np.float32)
     brightness = rng.uniform(0.6, 1.3, (length, k)).astype(np.float32)
     image = np.empty((length, k, size, size, 3), np.uint8)
+    pair = np.empty_like(image) if tracked else None
     for t in range(length):
         for v in range(k):
-            image[t, v] = render_synthetic(physics[t], background_seed[t, v], agent_rgb[t, v],
-                                           brightness[t, v], size)
+            draw = (background_seed[t, v], agent_rgb[t, v], brightness[t, v], size, tracked)
+            image[t, v] = render_synthetic(physics[t], *draw)
+            if pair is not None:  # the step before in this step's scene (datasets.md, §2)
+                pair[t, v] = render_synthetic(physics[max(t - 1, 0)], *draw)
     episode = Episode(
         image=image, state=state.astype(np.float32), physics=physics, action=action,
         reward=reward, discount=discount, is_first=is_first, is_last=is_last,
         is_terminal=is_terminal,
         dr={"background_seed": background_seed, "agent_rgb": agent_rgb, "brightness": brightness},
+        pair_image=pair,
     )
     info = EpisodeInfo(seed=seed, policy="synthetic", dr={"pole_mass_scale": mass_scale})
     return episode, info
@@ -170,8 +195,8 @@ def episode_length(config: SynthConfig, index: int) -> int:
 def synthetic_episode(config: SynthConfig, index: int) -> tuple[Episode, EpisodeInfo]:
     """Global synthetic episode ``index`` exactly as ``write_synthetic_dataset`` writes it."""
     length = episode_length(config, index)
-    return synth_episode(synth_spec(config.views, config.image_size), episode_seed(config, index),
-                         length, terminal=length < config.steps)
+    return synth_episode(synth_spec(config.views, config.image_size, config.tracked),
+                         episode_seed(config, index), length, terminal=length < config.steps)
 
 
 def shard_names(config: SynthConfig) -> list[str]:
@@ -195,8 +220,9 @@ def write_synthetic_dataset(out: str | os.PathLike[str], config: SynthConfig,
     require_memory(config.steps * (frame + 64), f"a synthetic episode of {config.steps} steps")
     require_disk(config.episodes * config.steps * frame, out,
                  f"writing {config.episodes} synthetic episodes of {config.steps} steps")
-    spec = synth_spec(config.views, config.image_size)
-    writers = [ShardWriter.create(out, name, spec, layout) for name in shard_names(config)]
+    spec = synth_spec(config.views, config.image_size, config.tracked)
+    writers = [ShardWriter.create(out, name, spec, layout, pairs=config.tracked)
+               for name in shard_names(config)]
     try:
         for i in range(config.episodes):
             episode, info = synthetic_episode(config, i)

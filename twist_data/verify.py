@@ -17,9 +17,11 @@ import numpy as np
 import zarr
 
 from twist_data.errors import DatasetCorruptError, TwistError
-from twist_data.reader import ShardReader, find_shards, rows_per_file
+from twist_data.reader import FRAME_PATHS, ShardReader, find_shards, rows_per_file
 from twist_data.schema import (
     EPISODE_COLUMNS,
+    FRAME_ARRAYS,
+    PAIR_IMAGE,
     Episode,
     EpisodeInfo,
     episode_problems,
@@ -74,27 +76,26 @@ def _shard_index_problem(arr: zarr.Array, folder: Path, index: int, inner: int) 
 
 
 def _verify_images(shard: ShardReader, problem: Callable[..., None],
-                   tick: Callable[[int], None]) -> None:
-    """Every committed frame, one image shard file at a time through zarr (which checks the
-    index's and, in format 2, each frame's CRC32C); a file that fails is read frame by frame
-    so that each damaged episode is named with its damaged steps."""
-    arr, n, views = shard.array("data/image"), shard.n_steps, shard.spec.views
-    missing = dict(shard.missing_chunks("data/image", 0, n))
+                   tick: Callable[[int], None], key: str = "data/image") -> None:
+    """Every committed frame of frame array ``key``, one shard file at a time through zarr
+    (which checks the index's and, in format 2, each frame's CRC32C); a file that fails is
+    read frame by frame so that each damaged episode is named with its damaged steps."""
+    arr, n, views = shard.array(key), shard.n_steps, shard.spec.views
+    missing = dict(shard.missing_chunks(key, 0, n))
     per_file = rows_per_file(arr)
     for a in range(0, n, per_file):
         b = min(a + per_file, n)
         if a in missing:
-            problem(f"{shard.rows_of('data/image', a, b)}: its shard file is missing",
-                    "data/image")
+            problem(f"{shard.rows_of(key, a, b)}: its shard file is missing", key)
             tick(b - a)
             continue
         try:
             arr[a:b]
         except Exception:  # zarr and the codecs raise assorted types
-            index_problem = _shard_index_problem(arr, shard.path / "data" / "image", a // per_file,
+            index_problem = _shard_index_problem(arr, shard.path / key, a // per_file,
                                                  per_file * views)
             if index_problem:  # the whole file: its frames cannot even be located
-                problem(f"{shard.rows_of('data/image', a, b)}: {index_problem}", "data/image")
+                problem(f"{shard.rows_of(key, a, b)}: {index_problem}", key)
                 tick(b - a)
                 continue
             bad: dict[int, list[tuple[int, str]]] = {}
@@ -110,7 +111,7 @@ def _verify_images(shard: ShardReader, problem: Callable[..., None],
             for episode, steps in bad.items():
                 first, last = steps[0][0], steps[-1][0]
                 problem(f"{len(steps)} step(s) between its steps {first} and {last} cannot be "
-                        f"decoded ({steps[0][1]})", "data/image", episode)
+                        f"decoded ({steps[0][1]})", key, episode)
         tick(b - a)
 
 
@@ -140,8 +141,8 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
             for a, b, why in shard.damaged_chunks(key, 0, committed):
                 problem(f"{shard.rows_of(key, a, b)}: {why}", key)
             continue
-        if key == "data/image":
-            _verify_images(shard, problem, tick)
+        if key in FRAME_PATHS:
+            _verify_images(shard, problem, tick, key)
             continue
         damaged = shard.damaged_chunks(key, 0, n)
         for a, b, why in damaged:
@@ -169,7 +170,7 @@ def _verify_shard(shard: ShardReader, report: VerifyReport,
 def _expected_arrays(shard: ShardReader) -> list[tuple[str, Any, tuple[int, ...], int]]:
     """(key, dtype, trailing shape, committed rows) of every array the shard must hold."""
     n = shard.n_steps
-    expected = [(a.path, a.dtype, a.trailing, n) for a in step_arrays(shard.spec)
+    expected = [(a.path, a.dtype, a.trailing, n) for a in step_arrays(shard.spec, shard.has_pairs)
                 if shard.has_images or a.name != "image"]
     expected += [(f"meta/{c}", dt, (), shard.n_episodes) for c, (dt, _) in EPISODE_COLUMNS.items()]
     expected += [(f"meta/dr/{p.name}", p.dtype, p.shape, shard.n_episodes)
@@ -212,12 +213,12 @@ def quick_problems(path: str | os.PathLike[str]) -> list[str]:
                 structure = f"{len(gaps)} chunk file(s) missing"
             if structure is not None:
                 found.append(f"shard {shard.name}, {key}: {structure}")
-            elif key == "data/image":  # each image file's own index: a few KiB, no frame
+            elif key in FRAME_PATHS:  # each frame file's own index: a few KiB, no frame
                 arr = shard.array(key)
                 per_file = rows_per_file(arr)
                 for a in range(0, committed, per_file):
                     index = _shard_index_problem(
-                        arr, shard.path / "data" / "image", a // per_file,
+                        arr, shard.path / key, a // per_file,
                         per_file * shard.spec.views)
                     if index:
                         found.append(f"shard {shard.name}, {key}: "
@@ -232,7 +233,7 @@ def _check_episodes(shard: ShardReader, loaded: dict[str, np.ndarray],
     every committed episode whose arrays all read, and the stored return against the
     rewards. Images are checked for shape only (their bytes were checked above)."""
     spec = shard.spec
-    names = [a.name for a in step_arrays(spec) if a.name != "image"]
+    names = [a.name for a in step_arrays(spec) if a.name not in FRAME_ARRAYS]
     if not all(f"data/{name}" in loaded for name in names):
         return  # a damaged array was reported already; its episodes cannot be judged
     frame_shape = (spec.views, *spec.image_shape)
@@ -242,6 +243,8 @@ def _check_episodes(shard: ShardReader, loaded: dict[str, np.ndarray],
                                    strict=True)):
         data = {name: loaded[f"data/{name}"][a:b] for name in names}
         data["image"] = np.broadcast_to(np.zeros((), np.uint8), (b - a, *frame_shape))
+        if shard.has_pairs:
+            data[PAIR_IMAGE] = data["image"]
         dr = {k.removeprefix("dr/"): data.pop(k) for k in list(data) if k.startswith("dr/")}
         code = int(shard.episode_column("episode_policy")[e])
         try:
@@ -255,7 +258,7 @@ def _check_episodes(shard: ShardReader, loaded: dict[str, np.ndarray],
         except TwistError as exc:
             problem(str(exc), "meta/episode_policy", e)
             continue
-        for message in episode_problems(Episode(**data, dr=dr), info, spec):
+        for message in episode_problems(Episode(**data, dr=dr), info, spec, shard.has_pairs):
             problem(message, None, e)
         total = float(np.sum(data["reward"], dtype=np.float64))
         if not np.isclose(total, returns[e], rtol=1e-6, atol=1e-6):
@@ -286,7 +289,7 @@ def verify_dataset(path: str | os.PathLike[str],
             if s.spec.schema_key() != ref.spec.schema_key():
                 report.problems.append(Problem(
                     s.name, f"schema differs from shard {ref.name}; they cannot form one dataset"))
-    total = sum(s.n_steps for s in shards)
+    total = sum(s.n_steps * (2 if s.has_pairs else 1) for s in shards)
     done = 0
 
     def tick(steps: int) -> None:

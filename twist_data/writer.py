@@ -37,6 +37,8 @@ from twist_data.schema import (
     EPISODE_COLUMNS,
     FORMAT_NAME,
     FORMAT_VERSION,
+    FRAME_ARRAYS,
+    PAIR_IMAGE,
     POLICY_CODES,
     DatasetSpec,
     Episode,
@@ -104,11 +106,16 @@ class ShardWriter:
         def opened(key: str) -> zarr.Array:
             return group[key].with_config({"write_empty_chunks": True})
 
-        self._step_arrays = {a.path: opened(a.path) for a in step_arrays(self.spec)}
-        images = self._step_arrays["data/image"]
-        encoder = frame_encoder(images)
-        self._frames = None if encoder is None else FrameWriter(
-            images, path / "data" / "image", encoder, int(images.shards[0]))
+        #: Whether the shard stores frame pairs (``data/pair_image``, made by :meth:`create`).
+        self.pairs = PAIR_IMAGE in group["data"]
+        self._step_arrays = {a.path: opened(a.path) for a in step_arrays(self.spec, self.pairs)}
+        self._frames: dict[str, FrameWriter] = {}
+        for name in FRAME_ARRAYS:
+            frames = self._step_arrays.get(f"data/{name}")
+            encoder = None if frames is None else frame_encoder(frames)
+            if encoder is not None:
+                self._frames[name] = FrameWriter(frames, path / "data" / name, encoder,
+                                                 int(frames.shards[0]))
         self._episode_arrays = {f"meta/{c}": opened(f"meta/{c}") for c in EPISODE_COLUMNS}
         self._episode_arrays.update(
             {f"meta/dr/{p.name}": opened(f"meta/dr/{p.name}") for p in self.spec.episode_dr_params}
@@ -122,8 +129,9 @@ class ShardWriter:
 
     @classmethod
     def create(cls, dataset_dir: str | os.PathLike[str], name: str, spec: DatasetSpec,
-               layout: StorageLayout | None = None) -> ShardWriter:
+               layout: StorageLayout | None = None, pairs: bool = False) -> ShardWriter:
         """Create shard ``name`` in ``dataset_dir`` (made if needed); fails if it exists.
+        ``pairs``: it also stores frame pairs, which every appended episode then carries.
 
         The shard is built under a hidden temporary name and renamed into place, so readers
         never see a shard without its metadata.
@@ -137,9 +145,9 @@ class ShardWriter:
         tmp = final.parent / f".{name}.zarr.creating-{os.getpid()}"
         shutil.rmtree(tmp, ignore_errors=True)
         group = zarr.open_group(tmp, mode="w")
-        for a in step_arrays(spec):
+        for a in step_arrays(spec, pairs):
             create_step_array(group, a.path, a.dtype, a.trailing, layout,
-                              sharded_frames=a.name == "image")
+                              sharded_frames=a.name in FRAME_ARRAYS)
         for column, (dtype, _) in EPISODE_COLUMNS.items():
             create_episode_array(group, f"meta/{column}", dtype, (), layout)
         for p in spec.episode_dr_params:
@@ -210,7 +218,7 @@ class ShardWriter:
 
     def append(self, episode: Episode, info: EpisodeInfo) -> int:
         """Validate, write and commit one episode; returns its index within the shard."""
-        problems = episode_problems(episode, info, self.spec)
+        problems = episode_problems(episode, info, self.spec, self.pairs)
         if problems:
             raise InvalidEpisodeError(
                 f"episode rejected by shard {self.path.name}: " + "; ".join(problems)
@@ -219,8 +227,9 @@ class ShardWriter:
         arrays = episode.arrays()
         for key, arr in self._step_arrays.items():
             arr.resize((stop, *arr.shape[1:]))
-            if key == "data/image" and self._frames is not None:
-                self._frames.append(start, arrays["image"])
+            name = key[len("data/"):]
+            if name in self._frames:
+                self._frames[name].append(start, arrays[name])
             else:
                 arr[start:stop] = arrays[key[len("data/"):]]
         e = self.n_episodes

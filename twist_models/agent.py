@@ -35,7 +35,8 @@ class AgentState:
     """The previous action [N, A]."""
     frames: torch.Tensor | None = None
     """Embeddings of the previous ``frames - 1`` images, most recent first
-    [N, frames - 1, E], or a read-out student's last read-out [N, R]; None before the
+    [N, frames - 1, E], or a read-out student's history (its last read-out [N, R] and what
+    :class:`~twist_models.perception.StateReading` keeps beside it); None before the
     episode's first image."""
 
 

@@ -320,8 +320,9 @@ class TeacherConfig(DreamerConfig):
 class ReadOutConfig:
     """A student that reads the teacher's state from images (the ``readout`` recipe): a CNN
     reads the components one frame shows, each velocity is a gain times the difference of
-    successive read-outs, and the teacher's own state encoder, filter and actor take it from
-    there (:mod:`twist_models.readout` pairs the components on D)."""
+    successive read-outs or, where it is the rate of nothing one frame shows, read from a
+    pair of frames of one scene, and the teacher's own state encoder, filter and actor take it
+    from there (:mod:`twist_models.readout` pairs the components on D)."""
 
     state_dim: int = 1
     """Length of the teacher's state vector."""
@@ -341,6 +342,10 @@ class ReadOutConfig:
     hidden: tuple[int, ...] = ()
     """State components the teacher never reads (its ``state_hidden``): neither read nor
     derived, handed on as 0, as the teacher's own encoder sees them."""
+    moving: tuple[int, ...] = ()
+    """Velocities that are the rate of nothing one frame shows (a tracked root's speed): read
+    by a head on the CNN's features of the step's frame pair, the step before and the step
+    in one scene (D's ``pair_image``; acting: the episode's previous frame)."""
     mirror: tuple[float, ...] = ()
     """Per component of ``read``, the sign it takes when the view is mirrored left to right
     (the task's ``TaskSpec.mirror``): given, each image is read as the mean of its own reading
@@ -372,11 +377,11 @@ class ReadOutConfig:
             raise ConfigError(f"lean must lie in (0, 2) for the reading's map to stay "
                               f"monotone, got {self.lean}")
         derived = [v[0] for v in self.velocities]
-        every = [*self.read, *derived, *self.hidden]
+        every = [*self.read, *derived, *self.moving, *self.hidden]
         if sorted(every) != list(range(self.state_dim)):
-            raise ConfigError(f"read {list(self.read)}, derived {derived} and hidden "
-                              f"{list(self.hidden)} components must cover the state's "
-                              f"{self.state_dim} components exactly once")
+            raise ConfigError(f"read {list(self.read)}, derived {derived}, moving "
+                              f"{list(self.moving)} and hidden {list(self.hidden)} components "
+                              f"must cover the state's {self.state_dim} components exactly once")
         for pair in self.angles:
             if len(pair) != 2 or not set(pair) <= set(self.read):
                 raise ConfigError(f"an angle pair must be two read components, got {pair}")

@@ -24,6 +24,7 @@ from torch import nn
 
 from twist_data.errors import ConfigError
 from twist_data.sampler import SamplerConfig
+from twist_data.schema import PAIR_IMAGE
 from twist_models.config import (
     CNN_NORMS,
     PRECISIONS,
@@ -364,10 +365,14 @@ class DistilConfig:
         them off."""
         return int(self.readout and self.readout_stage.first_velocity == "read")
 
-    def sampler(self, split: str, seed: int, batch_size: int | None = None) -> SamplerConfig:
+    def sampler(self, split: str, seed: int, batch_size: int | None = None,
+                pairs: bool = False) -> SamplerConfig:
+        """Windows of ``split`` (with each step's pair frame where ``pairs``: a read-out
+        student's moving velocities read them)."""
         return SamplerConfig(length=self.length + self.window_context,
                              batch_size=batch_size or self.batch_size,
-                             view=self.view, seed=seed, keys=KEYS,
+                             view=self.view, seed=seed,
+                             keys=(*KEYS, PAIR_IMAGE) if pairs else KEYS,
                              holdout_every=self.schedule.holdout_every, split=split)
 
 
@@ -526,8 +531,8 @@ class Distillation(nn.Module):
             t_post, t_prior = wm.rssm.observe(wm.embed(batch["state"]), action, is_first,
                                               start, post_draws)
         with precision_autocast(self.config.compute.precision, is_first.device):
-            embed = self.student.embed(batch["image"], is_first,
-                                       batch.get("image_before")).float()
+            embed = self.student.embed(batch["image"], is_first, batch.get("image_before"),
+                                       batch.get(PAIR_IMAGE)).float()
         s_post, s_prior = self.student.rssm.observe(embed, action, is_first, start, post_draws)
         terms = distillation_loss(s_post, s_prior["logits"], t_post, t_prior["logits"])
         return s_post, t_post, terms, embed
@@ -624,9 +629,12 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
                                         t_post["logits"])
         if student.perception.readout is not None:
             features = student.perception.encoder(batch["image"])
-            frames["read_error"] = student.perception.readout.error(features, batch["state"])
+            before = (student.perception.encoder(batch[PAIR_IMAGE]) if PAIR_IMAGE in batch
+                      else None)
+            frames["read_error"] = student.perception.readout.error(features, batch["state"],
+                                                                    before=before)
             frames["read_error_typical"] = student.perception.readout.error(
-                features, batch["state"], config.readout_stage.typical_spreads)
+                features, batch["state"], config.readout_stage.typical_spreads, before)
     deter = student.config.rssm.deter
     h_mse = float(terms["h"]) / deter
     # An h-MSE means little without the scale of the teacher's h (on cartpole its variance is

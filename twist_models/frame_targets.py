@@ -33,6 +33,7 @@ import torch
 from torch.nn import functional as F
 
 from twist_data.reader import MatchingDataset
+from twist_data.schema import PAIR_IMAGE
 from twist_models.losses import frame_posterior_loss, weighted_state_loss
 from twist_models.rssm import State, sample_one_hot
 from twist_models.student import Student
@@ -178,17 +179,22 @@ class FrameBatches:
     step of the episode repeated before its start, as :func:`~twist_models.perception.stack_frames`).
 
     A batch: ``image`` uint8 [B, frames, H, W, 3] (most recent first), ``state`` [B, S],
-    and from teacher targets ``deter`` [B, D] and ``sensitivity`` [B, S].
+    from teacher targets ``deter`` [B, D] and ``sensitivity`` [B, S], and with ``pairs``
+    ``pair`` uint8 [B, H, W, 3], the frame's pair frame (D's ``pair_image``) in its view.
 
     ``images``, D's images decoded once (:func:`twist_data.sampler.resident_images`), are
     gathered from on their device instead of decoding each batch: the same rows and views
-    for the same seed, so the same batches."""
+    for the same seed, so the same batches (``pair_images``: the pair frames, likewise)."""
 
     def __init__(self, data: MatchingDataset, targets: FrameRows, batch_size: int,
                  frames: int = 1, view: int | None = None, seed: int = 0,
-                 images: torch.Tensor | None = None) -> None:
+                 images: torch.Tensor | None = None, pairs: bool = False,
+                 pair_images: torch.Tensor | None = None) -> None:
+        if pairs:
+            data.require_pairs("frame batches with frame pairs")
         self.data, self.targets, self.batch_size = data, targets, batch_size
         self.frames, self.view, self.images = frames, view, images
+        self.pairs, self.pair_images = pairs, pair_images
         self.rng = np.random.default_rng(seed)
         self._images = np.empty((batch_size * frames, *data.spec.image_shape), np.uint8)
 
@@ -210,9 +216,20 @@ class FrameBatches:
             image = torch.from_numpy(self._images.reshape(shape)).clone()
         index = torch.as_tensor(rows)
         batch = {"image": image, "state": t.state[index]}
+        if self.pairs:
+            batch["pair"] = self._pair_frames(steps[:, 0], views)
         if isinstance(t, TeacherTargets):
             batch.update(deter=t.deter[index], sensitivity=t.sensitivity[index])
         return batch
+
+    def _pair_frames(self, steps: np.ndarray, views: np.ndarray) -> torch.Tensor:
+        if self.pair_images is not None:
+            device = self.pair_images.device
+            return self.pair_images[torch.as_tensor(steps, device=device),
+                                    torch.as_tensor(views, device=device)]
+        pair = np.empty((steps.size, *self.data.spec.image_shape), np.uint8)
+        self.data.read_frames(steps, views, pair, key=PAIR_IMAGE)
+        return torch.from_numpy(pair)
 
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
         while True:

@@ -8,8 +8,8 @@ new part here, picked by :func:`build_perception` from the student's config:
 * :class:`FrameEmbedding` (the ``paper`` and ``dense`` recipes): the CNN's embedding of the
   image, with those of the ``frames - 1`` images before it stacked;
 * :class:`StateReading` (the ``readout`` recipe): the CNN's features read as the teacher's
-  state, velocities derived from successive readings, embedded by the teacher's own state
-  encoder (:mod:`twist_models.readout`).
+  state, velocities derived from successive readings or read from a pair of frames of one
+  scene, embedded by the teacher's own state encoder (:mod:`twist_models.readout`).
 """
 
 from __future__ import annotations
@@ -41,9 +41,11 @@ class Perception(nn.Module):
         self.readout = None
 
     def window(self, image: torch.Tensor, is_first: torch.Tensor,
-               before: torch.Tensor | None = None) -> torch.Tensor:
+               before: torch.Tensor | None = None, pair: torch.Tensor | None = None
+               ) -> torch.Tensor:
         """Along windows: image uint8 [B, T, H, W, 3], is_first [B, T], and where the part
-        uses it the frame ``before`` each window (uint8 [B, H, W, 3]) -> [B, T, out_dim]."""
+        uses them the frame ``before`` each window (uint8 [B, H, W, 3]) and each step's pair
+        frame (D's ``pair_image``, uint8 [B, T, H, W, 3]) -> [B, T, out_dim]."""
         raise NotImplementedError
 
     def step(self, image: torch.Tensor, history: torch.Tensor | None
@@ -65,7 +67,8 @@ class FrameEmbedding(Perception):
         self.out_dim = self.encoder.out_dim * config.frames
 
     def window(self, image: torch.Tensor, is_first: torch.Tensor,
-               before: torch.Tensor | None = None) -> torch.Tensor:
+               before: torch.Tensor | None = None, pair: torch.Tensor | None = None
+               ) -> torch.Tensor:
         return stack_frames(self.encoder(image), is_first, self.frames)
 
     def step(self, image: torch.Tensor, history: torch.Tensor | None
@@ -76,7 +79,10 @@ class FrameEmbedding(Perception):
 class StateReading(Perception):
     """The CNN's features read as the teacher's state and embedded by the teacher's own state
     encoder: the history is the last step's reading, whose difference gives the velocities
-    (and the frames read so far where it pools a component, ``ReadOutConfig.pooled``)."""
+    (and the frames read so far where it pools a component, ``ReadOutConfig.pooled``), then
+    where any velocity is moving (``ReadOutConfig.moving``) the last frame's CNN features,
+    with which this frame's make the pair the moving velocities are read from: acting holds
+    one scene per episode, so the frame before is the step before in the same scene."""
 
     trains_filter = False
 
@@ -90,25 +96,44 @@ class StateReading(Perception):
         self.out_dim = self.readout.out_dim
 
     def window(self, image: torch.Tensor, is_first: torch.Tensor,
-               before: torch.Tensor | None = None) -> torch.Tensor:
-        positions = self.readout.pool_window(self.read_positions(image), is_first)
+               before: torch.Tensor | None = None, pair: torch.Tensor | None = None
+               ) -> torch.Tensor:
+        features = self.encoder(image)
+        positions = self.readout.pool_window(self.read_positions(image, features), is_first)
         previous = None if before is None else self.read_positions(before)
-        return self.embed_state(self.readout.window_state(positions, is_first, previous))
+        motion = None
+        if self.readout.motion is not None:
+            if pair is None:
+                raise ConfigError(f"velocity components {list(self.readout.config.moving)} "
+                                  "are read from frame pairs: windows need their pair_image")
+            motion = self.readout.read_motion(self.encoder(pair), features)
+        return self.embed_state(self.readout.window_state(positions, is_first, previous,
+                                                          motion))
 
     def step(self, image: torch.Tensor, history: torch.Tensor | None
              ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        positions, previous, history = self.readout.pool_step(self.read_positions(image),
-                                                              history)
-        return self.embed_state(self.readout.state(positions, previous)), history
+        features = self.encoder(image)
+        reading = self.read_positions(image, features)
+        width = reading.shape[-1] + (1 if self.readout.pooled_slots else 0)
+        positions, previous, after = self.readout.pool_step(
+            reading, None if history is None else history[..., :width])
+        motion = None
+        if self.readout.motion is not None:  # at an episode's start the frame is its own pair
+            before = features if history is None else history[..., width:]
+            motion = self.readout.read_motion(before, features)
+            after = torch.cat([after.float(), features.float()], -1)
+        return self.embed_state(self.readout.state(positions, previous, motion)), after
 
-    def read_positions(self, image: torch.Tensor) -> torch.Tensor:
-        """The reading of uint8 images [..., H, W, 3] -> [..., R]: what the filter is handed
-        before the velocities are derived."""
+    def read_positions(self, image: torch.Tensor, features: torch.Tensor | None = None
+                       ) -> torch.Tensor:
+        """The reading of uint8 images [..., H, W, 3] (whose CNN ``features`` [..., F] may be
+        at hand) -> [..., R]: what the filter is handed before the velocities are derived."""
         # A background never seen biases one reading and its mirror image's differently: the
         # mean of both errs less (docs/findings.md, "Does reading the mirror image too hold
         # the lost scenes?").
         mirrored = self.encoder(image.flip(-2)) if self.readout.config.mirror else None
-        return self.readout.positions(self.encoder(image), mirrored)
+        return self.readout.positions(self.encoder(image) if features is None else features,
+                                      mirrored)
 
     def embed_state(self, state: torch.Tensor) -> torch.Tensor:
         # In float32 whatever autocast the CNN ran under: this is the teacher's encoder.

@@ -11,6 +11,10 @@ images. This module lets the student hand that filter a state instead of an imag
 * each velocity is a gain times the difference of two successive read-outs (an angle's
   difference wrapped to (-pi, pi]); which component is the rate of which, and the gain, are
   measured on D by :func:`pair_velocities`, so no task needs a hand-written table;
+* a velocity that is the rate of nothing one frame shows (a root a camera tracks, whose
+  position no state holds) is read by a second head from the CNN's features of a pair of
+  frames of one scene: the step before and the step (D's ``pair_image``; acting: the
+  episode's previous frame), in units of its robust spread, as the positions;
 * the teacher's own state encoder (copied, fixed) embeds the result for the teacher's
   posterior.
 
@@ -22,7 +26,7 @@ predicting their mean, and the filter balanced on nothing but the velocity
 from __future__ import annotations
 
 import itertools
-import math
+import logging
 from collections.abc import Sequence
 
 import numpy as np
@@ -33,6 +37,8 @@ from twist_data.errors import ConfigError
 from twist_models.config import MLPConfig, ReadOutConfig
 from twist_models.losses import readout_loss
 from twist_models.networks import StateEncoder
+
+log = logging.getLogger(__name__)
 
 #: The default least correlation of a velocity with the difference it is derived from
 #: (``ReadOutStage.min_pairing``, which gives the measurements).
@@ -87,8 +93,10 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
     rest read, except the ``hidden`` ones, which the teacher never reads (its
     ``state_hidden``) and the student need not either. Each velocity is paired with the
     difference (over successive steps of one episode) of a read component, or of a
-    unit-circle pair's angle, that correlates best with it, which must reach ``min_pairing``
-    (``ReadOutStage.min_pairing``); its gain is the least-squares factor."""
+    unit-circle pair's angle, that correlates best with it, where that reaches
+    ``min_pairing`` (``ReadOutStage.min_pairing``); its gain is the least-squares factor. A
+    velocity that pairs with nothing (a tracked root's speed: its position is in no state) is
+    ``moving``, read from a pair of frames of one scene."""
     if not layout:
         raise ConfigError(f"the dataset of {task} declares no state layout; the readout recipe "
                           "needs to know which state components are velocities")
@@ -106,21 +114,17 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
     candidates = {(i,): change[:, i] for i in read if i not in in_pairs}
     for c, s in angles:
         candidates[(c, s)] = wrapped(np.diff(np.arctan2(states[:, s], states[:, c]))[step])
-    velocities, gains = [], []
+    velocities, gains, moving = [], [], []
     for v in derived:
         target = states[1:, v][step]
         scores = {k: abs(_correlation(d, target)) for k, d in candidates.items()}
-        best = max(scores, key=scores.__getitem__)
-        if scores[best] < min_pairing:
-            bar = math.floor(scores[best] * 100) / 100
-            # Below ~0.3 the best candidate is no rate at all: accepting it is no advice.
-            loose = (f"; or, if that pairing is right but loose, --set "
-                     f"readout_stage.min_pairing={bar} accepts it" if bar >= 0.3 else "")
-            raise ConfigError(f"velocity component {v} of {task} is the rate of no component "
-                              f"one image shows (best correlation {scores[best]:.2f} with "
-                              f"component(s) {list(best)}, needs {min_pairing}); a teacher "
-                              f"collected with --set 'teacher.world_model.state_hidden=[{v}]' "
-                              f"never reads it, and its read-out student need not either{loose}")
+        best = max(scores, key=scores.__getitem__, default=None)
+        if best is None or scores[best] < min_pairing:
+            log.info("velocity component %d of %s is read from frame pairs (best correlation "
+                     "%.2f with a read component's change, needs %s)", v, task,
+                     scores[best] if best is not None else 0.0, min_pairing)
+            moving.append(v)
+            continue
         taken = {tuple(pair[1:]): pair[0] for pair in velocities}
         if best in taken:
             raise ConfigError(f"velocity components {taken[best]} and {v} of {task} pair "
@@ -130,13 +134,23 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
         velocities.append((v, *best))
     return ReadOutConfig(state_dim=states.shape[1], read=tuple(read), angles=tuple(angles),
                          velocities=tuple(velocities), gains=tuple(gains), encoder=encoder,
-                         hidden=tuple(sorted(hidden)))
+                         hidden=tuple(sorted(hidden)), moving=tuple(moving))
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:
     if a.std() == 0 or b.std() == 0:
         return 0.0
     return float(np.corrcoef(a, b)[0, 1])
+
+
+def motion_standardisation(states: np.ndarray, config: ReadOutConfig
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Centre (median) and spread (MAD x 1.4826) of each moving velocity over ``states``
+    [N, S] -> (mean [M], scale [M])."""
+    moving = states[:, list(config.moving)].astype(np.float64)
+    centre = np.median(moving, 0)
+    scale = np.maximum(MAD_TO_STD * np.median(np.abs(moving - centre), 0), MIN_SCALE)
+    return centre.astype(np.float32), scale.astype(np.float32)
 
 
 def robust_standardisation(states: np.ndarray, config: ReadOutConfig
@@ -199,13 +213,45 @@ class StateReadOut(nn.Module):
                          for k, v in enumerate(config.velocities) if len(v) == 3]
         #: The slots of ``config.pooled`` in the read vector.
         self.pooled_slots = [position[i] for i in config.pooled]
+        moving = len(config.moving)
+        #: Reads the ``config.moving`` velocities from a frame pair's features (None: none).
+        self.motion = nn.Linear(2 * features, moving) if moving else None
+        # Saved only where there are any: bundles written before they existed still load.
+        self.register_buffer("motion_mean", torch.zeros(moving), persistent=bool(moving))
+        self.register_buffer("motion_scale", torch.ones(moving), persistent=bool(moving))
+        self.register_buffer("motion_weight", torch.ones(moving), persistent=False)
 
-    def loss(self, features: torch.Tensor, state: torch.Tensor, delta: float) -> torch.Tensor:
+    def loss(self, features: torch.Tensor, state: torch.Tensor, delta: float,
+             before: torch.Tensor | None = None) -> torch.Tensor:
         """The first stage's term: CNN features [..., F] and the true state [..., S] -> []:
-        the Huber loss of :meth:`errors` times ``loss_weight``, quadratic to ``delta`` units
-        (robust spreads unless :meth:`weigh_by_teacher` set other units;
-        :func:`~twist_models.losses.readout_loss`)."""
-        return readout_loss(self.errors(self.read(features), state) * self.loss_weight, delta)
+        the Huber loss of :meth:`errors` times ``loss_weight`` (and, with the features of
+        each frame's pair frame ``before`` [..., F], of :meth:`motion_errors` times
+        ``motion_weight``), quadratic to ``delta`` units (robust spreads unless
+        :meth:`weigh_by_teacher` set other units; :func:`~twist_models.losses.readout_loss`)."""
+        errors = self.errors(self.read(features), state) * self.loss_weight
+        if self.motion is not None:
+            motion = self.motion_errors(self.read_motion(self._before(before), features), state)
+            errors = torch.cat([errors, motion * self.motion_weight], -1)
+        return readout_loss(errors, delta)
+
+    def _before(self, before: torch.Tensor | None) -> torch.Tensor:
+        if before is None:
+            raise ConfigError(f"velocity components {list(self.config.moving)} are read from "
+                              "frame pairs, and none was given")
+        return before
+
+    def read_motion(self, before: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """The ``config.moving`` velocities in the state's units, from the CNN's features of
+        the frame before [..., F] and of the frame [..., F], one scene -> [..., M]."""
+        if self.motion is None:
+            return features.new_zeros(*features.shape[:-1], 0)
+        reading = self.motion(torch.cat([before.to(features.dtype), features], -1)).float()
+        return reading * self.motion_scale + self.motion_mean
+
+    def motion_errors(self, motion: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """:meth:`read_motion`'s errors in units of D's robust spread: [..., M], the true state
+        [..., S] -> [..., M]."""
+        return (motion - state[..., list(self.config.moving)]) / self.motion_scale
 
     @torch.no_grad()
     def teacher_units(self, states: torch.Tensor) -> torch.Tensor:
@@ -235,8 +281,13 @@ class StateReadOut(nn.Module):
         """Measure the loss's errors in :meth:`teacher_units` over ``states`` [N, S] instead
         of D's robust spreads, so that the CNN is spent on what moves the teacher's filter:
         a robust spread can be millimetres for a component the filter hardly reads (a pushed
-        block's height), which the squared error then outweighs every other with."""
+        block's height), which the squared error then outweighs every other with. A moving
+        velocity's unit is the error that moves the embedding by one unit."""
         self.loss_weight.copy_(self.scale / self.teacher_units(states))
+        if self.motion is not None:
+            jacobian = torch.func.vmap(torch.func.jacrev(self.encoder))(states.float())
+            moved = jacobian[..., list(self.config.moving)].pow(2).sum(1).mean(0)
+            self.motion_weight.copy_(self.motion_scale * moved.clamp_min(1e-12).sqrt())
 
     def read(self, features: torch.Tensor) -> torch.Tensor:
         """The read components in the state's units, as the head gives them: [..., F] ->
@@ -262,13 +313,18 @@ class StateReadOut(nn.Module):
 
     @torch.no_grad()
     def error(self, features: torch.Tensor, state: torch.Tensor,
-              within: float | None = None) -> float:
+              within: float | None = None, before: torch.Tensor | None = None) -> float:
         """RMS of :meth:`errors` over steps and components: features [..., F], state
-        [..., S] -> a float. With ``within``, only over the steps whose every read component
-        lies within that many robust spreads of D's median, as :func:`typical` picks the
-        frames the first stage trains on (NaN where none does): a fallen pole's frames, read
-        tens of spreads off by design, would otherwise outweigh every other frame's error."""
+        [..., S] -> a float; with the pair frames' features ``before`` [..., F], of
+        :meth:`motion_errors` too. With ``within``, only over the steps whose every read
+        component lies within that many robust spreads of D's median, as :func:`typical`
+        picks the frames the first stage trains on (NaN where none does): a fallen pole's
+        frames, read tens of spreads off by design, would otherwise outweigh every other
+        frame's error."""
         errors = self.errors(self.read(features), state)
+        if self.motion is not None and before is not None:
+            errors = torch.cat([errors, self.motion_errors(self.read_motion(before, features),
+                                                           state)], -1)
         if within is not None:
             read = state[..., list(self.config.read)]
             errors = errors[((read - self.mean).abs() <= within * self.scale).all(-1)]
@@ -309,9 +365,12 @@ class StateReadOut(nn.Module):
         angle = centre + offset + (self.config.lean - 1.0) * torch.sin(offset)
         return torch.cos(angle), torch.sin(angle)
 
-    def state(self, positions: torch.Tensor, previous: torch.Tensor) -> torch.Tensor:
+    def state(self, positions: torch.Tensor, previous: torch.Tensor,
+              motion: torch.Tensor | None = None) -> torch.Tensor:
         """The full state from this step's read-out and the last one's (the same tensor at an
-        episode's first step: velocities 0): [..., R], [..., R] -> [..., S]."""
+        episode's first step: velocities 0), and the moving velocities read from the step's
+        frame pair (:meth:`read_motion`; required where ``config.moving`` names any):
+        [..., R], [..., R], [..., M] -> [..., S]."""
         rates = []
         for k, i in self._linear:
             rates.append((k, self.gains[k] * (positions[..., i] - previous[..., i])))
@@ -323,6 +382,8 @@ class StateReadOut(nn.Module):
         state[..., list(self.config.read)] = positions
         for k, rate in rates:
             state[..., self.config.velocities[k][0]] = rate
+        if self.motion is not None:
+            state[..., list(self.config.moving)] = self._before(motion).to(state.dtype)
         return state
 
     def pool_step(self, reading: torch.Tensor, history: torch.Tensor | None
@@ -367,17 +428,25 @@ class StateReadOut(nn.Module):
         return positions
 
     def window_state(self, positions: torch.Tensor, is_first: torch.Tensor,
-                     before: torch.Tensor | None = None) -> torch.Tensor:
-        """:meth:`state` along windows: positions [B, T, R], is_first [B, T] -> [B, T, S]. A
-        window's first step takes its velocities from the read-out of the step ``before``
-        it ([B, R]), or without one has none: velocities 0, as at an episode's first step."""
+                     before: torch.Tensor | None = None, motion: torch.Tensor | None = None
+                     ) -> torch.Tensor:
+        """:meth:`state` along windows: positions [B, T, R], is_first [B, T] (and the moving
+        velocities [B, T, M]) -> [B, T, S]. A window's first step takes its velocities from
+        the read-out of the step ``before`` it ([B, R]), or without one has none: velocities
+        0, as at an episode's first step."""
         first = positions[:, :1] if before is None else before[:, None]
         shifted = torch.cat([first, positions[:, :-1]], 1)
         previous = torch.where(is_first.bool()[..., None], positions, shifted)
-        return self.state(positions, previous)
+        return self.state(positions, previous, motion)
 
     @torch.no_grad()
-    def set_standardisation(self, mean: np.ndarray, scale: np.ndarray) -> None:
+    def set_standardisation(self, mean: np.ndarray, scale: np.ndarray,
+                            motion: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Centre and spread of the read components [R] and, where any are moving, of the
+        moving velocities (``motion``: [M], [M]; :func:`robust_standardisation`)."""
         self.mean.copy_(torch.as_tensor(mean))
         self.scale.copy_(torch.as_tensor(scale))
+        if motion is not None:
+            self.motion_mean.copy_(torch.as_tensor(motion[0]))
+            self.motion_scale.copy_(torch.as_tensor(motion[1]))
 

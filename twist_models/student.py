@@ -35,11 +35,12 @@ class Student(nn.Module):
         self.register_load_state_dict_pre_hook(_rename_former_keys)
 
     def embed(self, image: torch.Tensor, is_first: torch.Tensor,
-              before: torch.Tensor | None = None) -> torch.Tensor:
+              before: torch.Tensor | None = None, pair: torch.Tensor | None = None
+              ) -> torch.Tensor:
         """What the posterior reads along windows (:meth:`Perception.window
         <twist_models.perception.Perception.window>`): image uint8 [B, T, H, W, 3], is_first
         [B, T] -> [B, T, E]."""
-        return self.perception.window(image, is_first, before)
+        return self.perception.window(image, is_first, before, pair)
 
     def step_embed(self, image: torch.Tensor, history: torch.Tensor | None
                    ) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -99,22 +99,21 @@ def reproduce_frames(dataset: MatchingDataset, steps: np.ndarray) -> np.ndarray:
 
 
 def reproduce_pairs(dataset: MatchingDataset, steps: np.ndarray) -> np.ndarray:
-    """Each of global ``steps`` as a pair of one scene (:meth:`DRRenderer.render_pair`): the
-    step before drawn under this step's DR parameters and framing, then this step as stored
-    -> [n, 2, K, H, W, 3]. At an episode's first step both frames are the step itself."""
+    """The pair frames (:func:`pair_frames`) of global ``steps``, redrawn from the stored
+    physics and DR draws -> [n, K, H, W, 3]: what ``data/pair_image`` holds there."""
     spec = dataset.spec
     steps = np.asarray(steps, np.int64)
-    out = np.empty((steps.size, 2, spec.views, *spec.image_shape), np.uint8)
+    out = np.empty((steps.size, spec.views, *spec.image_shape), np.uint8)
     first = dataset.column("is_first")[steps].astype(bool)
     physics = dataset.column("physics")
-    current, previous = physics[steps], physics[np.where(first, steps, steps - 1)]
+    both = np.stack([physics[np.where(first, steps, steps - 1)], physics[steps]], 1)
     params = {p.name: dataset.column(f"dr/{p.name}")[steps] for p in VIEW_PARAMS}
     for block in render_blocks(spec):
         start, stop = (int(v) for v in block["views"])
         with renderer_for_block(spec.task, block) as renderer:
             for i in range(steps.size):
-                out[i, :, start:stop] = renderer.render_pair(
-                    previous[i], current[i], {k: v[i, start:stop] for k, v in params.items()})
+                pair_frames(renderer, both[i], 1, {k: v[i, start:stop] for k, v in params.items()},
+                            out[i, start:stop])
     return out
 
 
@@ -151,13 +150,15 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
                      views: int = 2, image_size: int | None = None, add_views: bool = False,
                      supersample: int = 1, seed: int = 0, layout: StorageLayout | None = None,
                      episodes: Sequence[int] | None = None,
-                     on_episode: Callable[[int, int], None] | None = None) -> Path:
+                     on_episode: Callable[[int, int], None] | None = None,
+                     pairs: bool = False) -> Path:
     """Write a new dataset at ``out`` with the states, actions and rewards of ``source`` and
     images rendered under ``config``; with ``add_views`` the source's views are kept and the
     new ones appended. ``episodes``: the source's episode indices to re-render (negative ones
     count from the end; None: all); each episode's DR draws depend on ``seed`` and its index
     in the source alone, so a subset renders exactly as the same episodes of a full
-    re-render. The source is only read."""
+    re-render. ``pairs``: the new dataset stores frame pairs (:func:`pair_frames`); views
+    added to a source that stores pairs get theirs too. The source is only read."""
     if image_size is not None and image_size < 1:
         raise ConfigError(f"image_size must be >= 1 (or omitted for the dataset's), got "
                           f"{image_size}")
@@ -166,6 +167,9 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
     spec = src.spec
     if add_views:
         src.require_images("adding views to the stored ones")
+        if pairs and not src.has_pairs:
+            src.require_pairs("adding views with frame pairs")
+        pairs = src.has_pairs
     blocks = render_blocks(spec) if add_views else []
     size = spec.image_height if image_size is None else image_size
     if add_views and size != spec.image_height:
@@ -191,9 +195,10 @@ def rerender_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str]
                 shard, _ = src.episode_location(index)
                 name = src.shards[shard].name
                 if name not in writers:
-                    writers[name] = ShardWriter.create(out, name, new_spec, layout)
+                    writers[name] = ShardWriter.create(out, name, new_spec, layout, pairs)
                 episode, info = src.episode(index, images=add_views), src.episode_info(index)
-                new = _render_episode(renderer, sampler, episode, derived_seed(seed, index))
+                new = _render_episode(renderer, sampler, episode, derived_seed(seed, index),
+                                      pairs)
                 if add_views:
                     new = _concat_views(episode, new)
                 writers[name].append(new, info)
@@ -234,7 +239,8 @@ class ReproduceReport:
 
 def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
                       workers: int = 1, episodes: Sequence[int] | None = None,
-                      on_episode: Callable[[int, int], None] | None = None) -> ReproduceReport:
+                      on_episode: Callable[[int, int], None] | None = None,
+                      pairs: bool | None = None) -> ReproduceReport:
     """Rebuild the images of ``source`` (a full or a stripped D) from its stored physics, DR
     draws and render settings (every render block's image size, supersampling, views and
     bank) into the new dataset ``out``, in ``workers`` processes.
@@ -245,7 +251,9 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
     (and with it the held-out split). Each episode's frames are compared with the recorded
     ones by digest; frames that differ (another GL implementation draws other pixels) are
     kept and reported. ``episodes``: the source's episodes to rebuild (negative ones count
-    from the end; None: all), recorded as ``extra["rerendered_episodes"]``. ``out`` also gets
+    from the end; None: all), recorded as ``extra["rerendered_episodes"]``. ``pairs``: whether
+    ``out`` stores frame pairs (:func:`pair_frames`; None: as the source did, stripped or
+    not). ``out`` also gets
     the report as :data:`REPORT` (readers ignore files beside the shards). Built under a
     hidden name and renamed into place: a failure leaves nothing at ``out``."""
     if workers < 1:
@@ -260,16 +268,18 @@ def reproduce_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str
     if src.n_episodes == 0:
         raise ConfigError(f"dataset {str(source)!r} has no committed episode to rebuild")
     chosen = _episode_indices(episodes, src.n_episodes)
+    if pairs is None:
+        pairs = src.has_pairs or src.shards[0].images.pairs
     parts = _reproduction_plan(src, chosen, workers)
     report = ReproduceReport(out, str(source), workers=len(parts))
     started = time.perf_counter()
     with built_aside(out, "reproducing") as staging:
         subset = None if episodes is None else chosen
         if len(parts) == 1:
-            results = _reproduce_part(str(source), str(staging), parts[0], subset, None,
+            results = _reproduce_part(str(source), str(staging), parts[0], subset, pairs, None,
                                       on_episode, len(chosen))
         else:
-            results = _reproduce_in_processes(str(source), str(staging), parts, subset,
+            results = _reproduce_in_processes(str(source), str(staging), parts, subset, pairs,
                                               on_episode, len(chosen))
         report.seconds = time.perf_counter() - started
         for index, rebuilt, recorded, gl in sorted(results):
@@ -310,7 +320,7 @@ def _reproduction_plan(src: MatchingDataset, chosen: list[int], workers: int
 
 
 def _reproduce_part(source: str, staging: str, jobs: list[tuple[int, str]],
-                    subset: list[int] | None, progress: Any,
+                    subset: list[int] | None, pairs: bool, progress: Any,
                     on_episode: Callable[[int, int], None] | None = None,
                     total: int = 0) -> list[Rebuilt]:
     """Rebuild ``jobs`` into shards under ``staging``; each finished episode is put on the
@@ -331,20 +341,22 @@ def _reproduce_part(source: str, staging: str, jobs: list[tuple[int, str]],
             shard = src.shards[shard_index]
             episode = shard.episode(local, images=False)
             images = np.empty((len(episode), spec.views, *spec.image_shape), np.uint8)
+            pair = np.empty_like(images) if pairs else None
             for block, renderer in zip(blocks, renderers, strict=True):
                 a, b = (int(v) for v in block["views"])
                 for t in range(len(episode)):
-                    renderer.render(episode.physics[t],
-                                    {k: v[t, a:b] for k, v in episode.dr.items()},
-                                    out=images[t, a:b])
+                    params = {k: v[t, a:b] for k, v in episode.dr.items()}
+                    renderer.render(episode.physics[t], params, out=images[t, a:b])
+                    if pair is not None:
+                        pair_frames(renderer, episode.physics, t, params, pair[t, a:b])
             if shard.has_images:
                 first, last = int(shard.episode_starts[local]), int(shard.episode_ends[local])
                 recorded = image_digest(shard.read("image", first, last))
             else:
                 recorded = shard.images.sha256[local]
             if name not in writers:
-                writers[name] = ShardWriter.create(staging, name, new_spec, shard.layout)
-            writers[name].append(dataclasses.replace(episode, image=images),
+                writers[name] = ShardWriter.create(staging, name, new_spec, shard.layout, pairs)
+            writers[name].append(dataclasses.replace(episode, image=images, pair_image=pair),
                                  src.episode_info(index))
             results.append((index, image_digest(images), recorded, gl))
             if progress is not None:
@@ -360,14 +372,14 @@ def _reproduce_part(source: str, staging: str, jobs: list[tuple[int, str]],
 
 
 def _reproduce_in_processes(source: str, staging: str, parts: list[list[tuple[int, str]]],
-                            subset: list[int] | None,
+                            subset: list[int] | None, pairs: bool,
                             on_episode: Callable[[int, int], None] | None,
                             total: int) -> list[Rebuilt]:
     # Spawned, not forked: each worker opens its own GL context, which a fork cannot share.
     context = multiprocessing.get_context("spawn")
     with context.Manager() as manager, ProcessPoolExecutor(len(parts), mp_context=context) as pool:
         progress = manager.Queue()
-        futures = [pool.submit(_reproduce_part, source, staging, jobs, subset, progress)
+        futures = [pool.submit(_reproduce_part, source, staging, jobs, subset, pairs, progress)
                    for jobs in parts]
         done = 0
         while True:
@@ -401,7 +413,8 @@ def _episode_indices(episodes: Sequence[int] | None, n_episodes: int) -> list[in
     return sorted({index % n_episodes for index in episodes})
 
 
-def _render_episode(renderer: DRRenderer, sampler: Any, episode: Episode, seed: int) -> Episode:
+def _render_episode(renderer: DRRenderer, sampler: Any, episode: Episode, seed: int,
+                    pairs: bool = False) -> Episode:
     sampler.begin_episode(seed)  # dynamics are the source's: physics cannot be re-simulated here
     t = len(episode)
     images = np.empty((t, renderer.views, renderer.image_size, renderer.image_size, 3), np.uint8)
@@ -409,14 +422,37 @@ def _render_episode(renderer: DRRenderer, sampler: Any, episode: Episode, seed: 
     for i in range(t):
         params.append(sampler.sample())
         renderer.render(episode.physics[i], params[-1], out=images[i])
-    return dataclasses.replace(episode, image=images, dr=stack_view_params(params))
+    pair = None
+    if pairs:
+        pair = np.empty_like(images)
+        for i in range(t):
+            pair_frames(renderer, episode.physics, i, params[i], pair[i])
+    return dataclasses.replace(episode, image=images, dr=stack_view_params(params),
+                               pair_image=pair)
+
+
+def pair_frames(renderer: DRRenderer, physics: np.ndarray, t: int,
+                params: Mapping[str, np.ndarray], out: np.ndarray) -> np.ndarray:
+    """Step ``t``'s pair frames (datasets.md, §2 ``pair_image``): the step before drawn
+    under step ``t``'s draw ``params`` as its own frame (camera and lights where they stood
+    then), or step ``t`` itself at the episode's first step; ``physics`` [T, P] is the
+    episode's -> ``out`` [K, H, W, 3].
+
+    Why: acting holds one scene per episode, so the frame before a step is that scene at the
+    step before, seen from where a tracking camera stood then; D draws a new scene at every
+    step, and this draws the step before again in this step's scene."""
+    return renderer.render(physics[max(t - 1, 0)], params, out=out)
 
 
 def _concat_views(old: Episode, new: Episode) -> Episode:
     if set(old.dr) != set(new.dr):
         raise SchemaMismatchError(f"cannot add views: the dataset's DR parameters {sorted(old.dr)} "
                                   f"differ from the renderer's {sorted(new.dr)}")
+    pair = None
+    if old.pair_image is not None and new.pair_image is not None:
+        pair = np.concatenate([old.pair_image, new.pair_image], 1)
     return dataclasses.replace(old, image=np.concatenate([old.image, new.image], 1),
-                               dr={k: np.concatenate([old.dr[k], new.dr[k]], 1) for k in old.dr})
+                               dr={k: np.concatenate([old.dr[k], new.dr[k]], 1) for k in old.dr},
+                               pair_image=pair)
 
 

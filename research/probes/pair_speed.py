@@ -3,14 +3,17 @@
 A tracking camera (cheetah's, walker's, hopper's) follows the body, so no single frame shows its
 forward speed, and D redraws its scene at every step, so two consecutive frames of D differ by
 the whole scene as well as by the motion. :func:`twist_sim.rerender.reproduce_pairs` draws the
-step before under this step's scene and framing, so that the two differ by the motion alone.
-This trains the same small CNN (shared between the two frames of an input, a linear head on
-their features) to read one state component from each kind of input, on the same steps of
-D's first episodes, and scores it on its last ones (R^2; 0 is predicting the mean):
+step before in this step's scene, so that the two differ by the motion alone. This trains the
+same small CNN (shared between the two frames of an input, a linear head on their features) to
+read one state component from each kind of input, on the same steps of D's first episodes, and
+scores it on its last ones (R^2; 0 is predicting the mean):
 
 * ``frame``: the step's frame alone;
 * ``consecutive``: D's frames of the step before and of the step, each in its own scene;
-* ``pair``: the step before drawn in this step's scene, and the step.
+* ``pair``: the step before drawn in this step's scene from where the camera stood then (what
+  acting sees: one scene per episode, a tracking camera that moved), and the step;
+* ``framed``: the step before drawn in this step's scene from where the camera stands now (a
+  camera that did not follow: not what acting sees, the upper bound of what motion shows).
 
 ``python research/probes/pair_speed.py D [--component 8] [--steps 6000] [--updates 1500]
 [--seed 0]`` (component 8 of cheetah-run's state is the root's forward speed); prints one
@@ -29,7 +32,8 @@ from torch import nn
 from twist_data.reader import open_dataset
 from twist_models.config import CNNConfig
 from twist_models.networks import ImageEncoder
-from twist_sim.rerender import reproduce_pairs
+from twist_sim.randomisation import VIEW_PARAMS
+from twist_sim.rerender import render_blocks, renderer_for_block, reproduce_pairs
 
 
 def inputs(path: str, steps: int, seed: int) -> dict[str, np.ndarray]:
@@ -44,9 +48,23 @@ def inputs(path: str, steps: int, seed: int) -> dict[str, np.ndarray]:
                         frames)
     episode = np.searchsorted(dataset.episode_starts, chosen, side="right") - 1
     return {"frame": frames[:steps], "before": frames[steps:],
-            "pair": reproduce_pairs(dataset, chosen)[:, 0, 0],
+            "pair": reproduce_pairs(dataset, chosen)[:, 0], "framed": framed(dataset, chosen),
             "state": dataset.column("state")[chosen],
             "heldout": episode >= int(0.8 * dataset.n_episodes)}
+
+
+def framed(dataset, steps: np.ndarray) -> np.ndarray:
+    """View 0 of the step before each of ``steps`` (none is an episode's first) drawn under the
+    step's draw and camera framing."""
+    physics = dataset.column("physics")
+    params = {p.name: dataset.column(f"dr/{p.name}")[steps, :1] for p in VIEW_PARAMS}
+    block = render_blocks(dataset.spec)[0]
+    out = np.empty((steps.size, 1, *dataset.spec.image_shape), np.uint8)
+    with renderer_for_block(dataset.spec.task, {**block, "views": [0, 1]}) as renderer:
+        for i, step in enumerate(steps.tolist()):
+            renderer.render_states([physics[step - 1]], [{k: v[i] for k, v in params.items()}],
+                                   out=out[i:i + 1], framed_by=[physics[step]])
+    return out[:, 0]
 
 
 class Reader(nn.Module):
@@ -95,7 +113,7 @@ def main() -> None:
     data = inputs(args.dataset, args.steps, args.seed)
     target = data["state"][:, args.component].astype(np.float64)
     kinds = {"frame": [data["frame"]], "consecutive": [data["before"], data["frame"]],
-             "pair": [data["pair"], data["frame"]]}
+             "pair": [data["pair"], data["frame"]], "framed": [data["framed"], data["frame"]]}
     result = {"dataset": args.dataset, "component": args.component, "steps": args.steps,
               "heldout_steps": int(data["heldout"].sum()), "updates": args.updates,
               "seed": args.seed}

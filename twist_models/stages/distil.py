@@ -46,6 +46,7 @@ from twist_data.sampler import (
     resident_images,
     window_problem,
 )
+from twist_data.schema import PAIR_IMAGE
 from twist_data.seeding import derived_seed
 from twist_data.staging import removed_on_failure, require_memory
 from twist_models.agent import Agent
@@ -85,6 +86,7 @@ from twist_models.frame_targets import (
 )
 from twist_models.readout import (
     episode_constants,
+    motion_standardisation,
     pair_velocities,
     robust_standardisation,
     training_frames,
@@ -256,6 +258,9 @@ def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher, mirr
         log.info("the read-out pools components %s over each episode: D's episodes never "
                  "change them", list(pooled))
     readout = dataclasses.replace(readout, lean=stage.lean, pooled=pooled)
+    if readout.moving:  # refused before anything is written, naming the command that adds them
+        data.require_pairs(f"the readout recipe on {data.spec.task} (velocity components "
+                           f"{list(readout.moving)} are the rate of nothing one frame shows)")
     if mirror == "none":
         return readout
     signs = _mirror(data)
@@ -333,7 +338,8 @@ def _rank_and_world() -> tuple[int, int]:
 
 
 def _to_device(batch: Mapping[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
-    return {k: torch.as_tensor(batch[k]).to(device, non_blocking=True) for k in KEYS}
+    return {k: torch.as_tensor(batch[k]).to(device, non_blocking=True) for k in (*KEYS, PAIR_IMAGE)
+            if k in batch}
 
 
 class Distiller:
@@ -352,6 +358,8 @@ class Distiller:
         latest = self.run_folder.latest
         torch.manual_seed(config.seed)
         self.student = Student(student_config)
+        #: Whether the student reads frame pairs (a read-out's moving velocities).
+        self.pairs = bool(student_config.readout is not None and student_config.readout.moving)
         self.optimiser = self._optimiser()
         if latest.exists():
             checkpoint = read_checkpoint(latest, kind="student")
@@ -372,8 +380,10 @@ class Distiller:
             self.updates, self.frame_updates, self.seconds, self.heldout_first = 0, 0, 0.0, {}
             if self.student.perception.readout is not None:
                 copy_teacher_filter(self.student, self.teacher.world_model)
-                self.student.perception.readout.set_standardisation(*robust_standardisation(
-                    rows.state.numpy(), student_config.readout))
+                states = rows.state.numpy()
+                self.student.perception.readout.set_standardisation(
+                    *robust_standardisation(states, student_config.readout),
+                    motion_standardisation(states, student_config.readout))
             elif config.copy_dynamics:
                 copy_teacher_dynamics(self.student, self.teacher.world_model.rssm)
             # Ranks start from one student but draw their own latent samples and noise.
@@ -435,7 +445,7 @@ class Distiller:
         c = self.config
         try:
             sampler = WindowSampler(self.data, c.sampler("heldout", derived_seed(c.seed, 1),
-                                                         c.schedule.heldout_windows))
+                                                         c.schedule.heldout_windows, self.pairs))
         except TwistError as exc:
             raise DistilError(f"no held-out windows (every {c.schedule.holdout_every}th episode is held "
                               f"out): {exc}; lower schedule.holdout_every or the window length") from None
@@ -445,7 +455,7 @@ class Distiller:
     def _windows(self) -> Iterator[dict[str, torch.Tensor]]:
         """Training windows; a resumed run draws from a stream seeded by its update count."""
         c = self.config
-        sampler = c.sampler("train", derived_seed(c.seed, 3, self.updates))
+        sampler = c.sampler("train", derived_seed(c.seed, 3, self.updates), pairs=self.pairs)
         try:
             if self._resident(sampler.keys):
                 return iter(ResidentWindows(self.data, sampler, self.device, self.rank,
@@ -603,10 +613,13 @@ class Distiller:
         """The first stage: the per-frame terms alone on single training frames, for
         ``frame_steps`` updates; resumable at its evaluation points."""
         c = self.config
-        images = resident_images(self.data, self.device) if self._resident(("image",)) else None
+        resident = self._resident(("image", PAIR_IMAGE) if self.pairs else ("image",))
+        images = resident_images(self.data, self.device) if resident else None
+        pair_images = (resident_images(self.data, self.device, PAIR_IMAGE)
+                       if resident and self.pairs else None)
         batches = FrameBatches(self.data, self.rows, c.frame_batch, c.frames, c.view,
                                seed=derived_seed(c.seed, 7, self.frame_updates, self.rank),
-                               images=images)
+                               images=images, pairs=self.pairs, pair_images=pair_images)
         params = [p for p in self.student.parameters() if p.requires_grad]
         flips = torch.Generator().manual_seed(derived_seed(c.seed, 9, self.frame_updates,
                                                            self.rank))
@@ -623,11 +636,15 @@ class Distiller:
                 flip = (torch.rand(len(batch["state"]), generator=flips) < 0.5).to(self.device)
                 batch["image"][flip] = batch["image"][flip].flip(-2)
                 batch["state"][flip] = batch["state"][flip] * mirror
+                if "pair" in batch:
+                    batch["pair"][flip] = batch["pair"][flip].flip(-2)
             with precision_autocast(c.compute.precision, self.device):  # most recent frame first:
                 embed = self.student.perception.encoder(batch["image"]).flatten(1).float()
+                before = (self.student.perception.encoder(batch["pair"]).float()
+                          if "pair" in batch else None)
             if self.student.perception.readout is not None:
-                terms = {"readout": self.student.perception.readout.loss(embed, batch["state"],
-                                                              c.readout_stage.huber_delta)}
+                terms = {"readout": self.student.perception.readout.loss(
+                    embed, batch["state"], c.readout_stage.huber_delta, before)}
                 loss = terms["readout"]
             else:
                 terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
