@@ -17,13 +17,15 @@ import pytest
 import torch
 
 from tests.conftest import board_events
-from twist_data.errors import ConfigError
+from twist_data.errors import ConfigError, PairsMissingError
 from twist_data.reader import open_dataset
 from twist_data.sampler import WindowSampler
+from twist_data.schema import PAIR_IMAGE
 from twist_data.synth import _DT, SYNTH_MIRROR, SynthConfig, write_synthetic_dataset
 from twist_models.agent import Agent
 from twist_models.checkpoint import read_checkpoint
 from twist_models.config import (
+    CNNConfig,
     MLPConfig,
     ReadOutConfig,
     StudentConfig,
@@ -41,6 +43,7 @@ from twist_models.networks import ImageEncoder
 from twist_models.readout import (
     StateReadOut,
     episode_constants,
+    motion_standardisation,
     pair_velocities,
     robust_standardisation,
     training_frames,
@@ -847,3 +850,128 @@ def test_a_readout_trained_in_teacher_units_saves_and_resumes(inputs, tmp_path: 
     assert stored_config(tmp_path / "run").readout_stage.units == "teacher"
     with pytest.raises(ConfigError, match=r"units.*'spreads'"):
         ReadOutStage(units="spreads")
+
+
+# -- velocities that only motion shows -----------------------------------------------------
+TRACKED = SynthConfig(episodes=16, steps=40, views=2, image_size=32, seed=3, tracked=True)
+#: A CNN small enough for 32-pixel frames (32 -> 15 -> 6 -> 2).
+SMALL_CNN = CNNConfig(depth=8, image_size=32, norm="layer", encoder_kernels=(4, 4, 3))
+
+
+@pytest.fixture(scope="module")
+def tracked(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The synthetic cartpole seen by a camera that follows the cart: its state holds no cart
+    position, so the cart's speed shows only as the floor's motion between two frames."""
+    return write_synthetic_dataset(tmp_path_factory.mktemp("tracked") / "ds", TRACKED)
+
+
+def _tracked_student(data) -> Student:
+    state, first = data.column("state"), data.column("is_first").astype(bool)
+    config = pair_velocities(state, first, data.spec.state_layout, MLPConfig(layers=1, units=8),
+                             data.spec.task)
+    student = Student(StudentConfig(action_dim=1, cnn=SMALL_CNN, readout=config))
+    student.perception.readout.set_standardisation(*robust_standardisation(state, config),
+                                                   motion_standardisation(state, config))
+    return student
+
+
+def test_a_tracked_speed_is_read_from_frame_pairs_and_from_nothing_less(tracked: Path) -> None:
+    data = open_dataset(tracked)
+    student = _tracked_student(data)
+    readout = student.perception.readout
+    # x_dot (2) pairs with no component the state holds; theta_dot (3) with the pole's angle.
+    assert readout.config.moving == (2,) and readout.config.velocities == ((3, 0, 1),)
+    k, n = data.spec.views, data.n_steps
+    steps, views = np.repeat(np.arange(n), k), np.tile(np.arange(k), n)
+    frames = {key: np.empty((n * k, 32, 32, 3), np.uint8) for key in ("image", PAIR_IMAGE)}
+    for key, out in frames.items():
+        data.read_frames(steps, views, out, key=key)
+    state = torch.as_tensor(data.column("state")[steps])
+    episode = np.searchsorted(data.episode_starts, steps, side="right") - 1
+    train, test = np.flatnonzero(episode < 12), np.flatnonzero(episode >= 12)
+    image = torch.as_tensor(frames["image"])
+
+    def held_out_error(before: torch.Tensor) -> float:
+        """The moving velocity's RMS error in robust spreads on the last four episodes after
+        500 updates of the motion CNN on the first twelve, reading (before, frame)."""
+        torch.manual_seed(0)
+        probe = _tracked_student(data).perception
+        params = [*probe.motion_encoder.parameters(), *probe.readout.motion.parameters()]
+        optimiser = torch.optim.Adam(params, 1e-3)
+        rng = np.random.default_rng(0)
+        for _ in range(500):
+            b = torch.as_tensor(rng.choice(train, 32))
+            motion = probe.readout.read_motion(probe.motion_features(before[b], image[b]))
+            loss = readout_loss(probe.readout.motion_errors(motion, state[b]))
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+        with torch.no_grad():
+            motion = probe.readout.read_motion(probe.motion_features(before[test], image[test]))
+            return float(probe.readout.motion_errors(motion, state[test]).pow(2).mean().sqrt())
+
+    # Predicting D's median errs by the held-out spread of x_dot in robust spreads (~1.3).
+    median = float(readout.motion_errors(readout.motion_mean.expand(len(test), 1),
+                                         state[test]).pow(2).mean().sqrt())
+    from_pairs = held_out_error(torch.as_tensor(frames[PAIR_IMAGE]))
+    from_one_frame = held_out_error(image)  # the frame as its own pair: no motion to see
+    assert from_pairs < 0.3 * median
+    assert from_one_frame > 0.9 * median
+
+
+def test_the_window_and_step_paths_read_motion_alike(tracked: Path) -> None:
+    """Training reads each step's stored pair frame, acting the episode's previous frame: where
+    those are the same pixels, both paths hand the filter the same state."""
+    data = open_dataset(tracked)
+    student = _tracked_student(data).eval()
+    episode = data.episode(1)
+    image = torch.as_tensor(episode.image[:, 0])[None]  # one view of one episode [1, T, ...]
+    pair = torch.cat([image[:, :1], image[:, :-1]], 1)  # its previous frame, as acting keeps it
+    is_first = torch.as_tensor(episode.is_first)[None]
+    with torch.no_grad():
+        window = student.perception.window(image, is_first, pair=pair)
+        history, steps = None, []
+        for t in range(image.shape[1]):
+            embedded, history = student.perception.step(image[:, t], history)
+            steps.append(embedded)
+        torch.testing.assert_close(torch.stack(steps, 1), window, atol=1e-5, rtol=1e-5)
+        with pytest.raises(ConfigError, match=r"components \[2\] are read from frame pairs"):
+            student.perception.window(image, is_first)
+
+
+def test_a_tracked_task_distils_end_to_end_and_its_agent_reads_the_frame_before(
+        tmp_path: Path) -> None:
+    dataset = write_synthetic_dataset(tmp_path / "ds", dataclasses.replace(
+        DATA, tracked=True, length_jitter=0))
+    torch.manual_seed(4)
+    teacher = save_teacher(tmp_path / "teacher.pt", Teacher(teacher_preset("tiny", 4, 1)))
+    config = distil_preset("tiny", "readout", steps=2)
+    summary = distil(dataset, tmp_path / "run", config, teacher=teacher)
+    agent = Agent.load(summary.agent)
+    assert agent.config.student.readout.moving == (2,)
+    assert agent.student.perception.motion_encoder is not None
+    held = pd.read_csv(tmp_path / "run" / "heldout.csv")
+    assert np.isfinite(held["read_error"]).all()
+    episode = open_dataset(dataset).episode(0)
+    state, actions = None, []
+    for t in range(4):
+        action, state = agent.act(episode.image[t, 0], state)
+        actions.append(action)
+    assert np.isfinite(np.stack(actions)).all()
+    # The history holds the frame the next step pairs with its own.
+    frame = torch.as_tensor(episode.image[3, 0]).float() / 255 - 0.5
+    torch.testing.assert_close(state.frames[0, -frame.numel():], frame.flatten())
+    # The same D without its pairs: refused in one sentence naming the command that adds
+    # them, and nothing written.
+    import shutil
+
+    bare = tmp_path / "bare"
+    shutil.copytree(dataset, bare)
+    for folder in bare.glob(f"*.zarr/data/{PAIR_IMAGE}"):
+        shutil.rmtree(folder)
+    with pytest.raises(PairsMissingError, match=r"the readout recipe on "
+                       r"synthetic-cartpole-tracked \(velocity components \[2\] are the rate "
+                       r"of nothing one frame shows\) needs frame pairs .* twist-data render "
+                       r".*bare OUT --reproduce --pairs"):
+        distil(bare, tmp_path / "refused", config, teacher=teacher)
+    assert not (tmp_path / "refused").exists()

@@ -486,7 +486,7 @@ def test_every_task_renders_randomised_views(task: str, gl: None) -> None:
     assert not np.array_equal(images[0], images[1])
 
 
-def test_a_pair_shows_the_motion_a_tracking_camera_hides(gl: None) -> None:
+def test_a_state_framed_by_another_is_seen_from_where_its_camera_stood(gl: None) -> None:
     env = TaskEnv("cheetah-run", 4, seed=0)
     env.reset()
     for _ in range(5):
@@ -496,30 +496,29 @@ def test_a_pair_shows_the_motion_a_tracking_camera_hides(gl: None) -> None:
     previous[1] -= 0.3  # the root 30 cm behind: physics is [time, qpos (rootx first), ...]
     with DRRenderer("cheetah-run", dr_preset("train-wide-full"), 64, 2, 2) as r:
         params = r.sampler(0).sample()
-        pair = r.render_pair(previous, current, params)
-        np.testing.assert_array_equal(pair[1], r.render(current, params))
+        now = r.render(current, params)
+        framed = r.render_states([previous], [params], framed_by=[current])[0]
         # Its own render follows the body: the move hardly shows. Framed as the current step
         # is, it does.
-        tracked = np.abs(r.render(previous, params).astype(np.int32) - pair[1]).mean()
-        moved = np.abs(pair[0].astype(np.int32) - pair[1]).mean()
+        tracked = np.abs(r.render(previous, params).astype(np.int32) - now).mean()
+        moved = np.abs(framed.astype(np.int32) - now).mean()
         assert moved > 3 * tracked > 0
-        still = r.render_pair(current, current, params)
-        np.testing.assert_array_equal(still[0], still[1])
-        np.testing.assert_array_equal(still[1], pair[1])  # the framing left nothing behind
-    # A camera that tracks nothing frames both alike: the pair is two direct renders.
+        itself = r.render_states([current], [params], framed_by=[current])[0]
+        np.testing.assert_array_equal(itself, now)
+        np.testing.assert_array_equal(r.render(current, params), now)  # nothing left behind
+    # A camera that tracks nothing frames both alike: the framing changes nothing.
     env = TaskEnv("cartpole-balance", 4, seed=0)
     env.reset()
     first = env.physics_state()
     second = env.step(np.ones(env.action_dim)).physics
     with DRRenderer("cartpole-balance", dr_preset("train-wide-full"), 32, 2) as r:
         params = r.sampler(1).sample()
-        pair = r.render_pair(first, second, params)
-        np.testing.assert_array_equal(pair[0], r.render(first, params))
-        np.testing.assert_array_equal(pair[1], r.render(second, params))
-        assert not np.array_equal(pair[0], pair[1])
+        framed = r.render_states([first], [params], framed_by=[second])[0]
+        np.testing.assert_array_equal(framed, r.render(first, params))
 
 
-def test_pairs_from_stored_physics_end_on_the_stored_frame(collected_tiny: Path) -> None:
+def test_pairs_redrawn_from_stored_physics_are_the_step_before_in_the_steps_scene(
+        collected_tiny: Path) -> None:
     dataset = open_dataset(collected_tiny)
     starts = dataset.episode_starts
     steps = np.array([starts[0], starts[0] + 1, starts[1] + 7])
@@ -527,16 +526,16 @@ def test_pairs_from_stored_physics_end_on_the_stored_frame(collected_tiny: Path)
     stored = np.empty((3 * dataset.spec.views, *dataset.spec.image_shape), np.uint8)
     views = np.arange(dataset.spec.views)
     dataset.read_frames(np.repeat(steps, len(views)), np.tile(views, 3), stored)
-    np.testing.assert_array_equal(pairs[:, 1], stored.reshape(pairs[:, 1].shape))
-    np.testing.assert_array_equal(pairs[0, 0], pairs[0, 1])  # a first step has no step before
-    # cartpole's camera tracks nothing: the first frame is the step before, drawn as this one.
+    stored = stored.reshape(pairs.shape)
+    np.testing.assert_array_equal(pairs[0], stored[0])  # a first step is its own pair
     physics, params = dataset.column("physics"), {
         p.name: dataset.column(f"dr/{p.name}") for p in VIEW_PARAMS}
     block = render_blocks(dataset.spec)[0]
     with renderer_for_block(dataset.spec.task, block) as renderer:
         for i, step in enumerate(steps[1:], 1):
             expected = renderer.render(physics[step - 1], {k: v[step] for k, v in params.items()})
-            np.testing.assert_array_equal(pairs[i, 0], expected)
+            np.testing.assert_array_equal(pairs[i], expected)
+            assert not np.array_equal(pairs[i], stored[i])  # the step before, not the step
 
 
 # -- rendering in a child process ------------------------------------------------------------

@@ -31,9 +31,10 @@ log = logging.getLogger(__name__)
 SYNTH_TASK = "synthetic-cartpole"
 #: The tracked variant's task name (:attr:`SynthConfig.tracked`).
 SYNTH_TRACKED_TASK = "synthetic-cartpole-tracked"
-#: Background pixels per unit of cart position where the camera tracks the cart: a step at
-#: a typical speed moves the scene by a few pixels.
-_TRACKED_SHIFT = 6.0
+#: Image widths the floor moves per unit of cart position where the camera tracks the cart:
+#: a step at a typical speed moves it by a pixel or two of a 32-pixel image, well within
+#: the half wave (a quarter of the width) that tells its direction.
+_TRACKED_SHIFT = 1.0
 #: The synthetic state's signs in the mirrored picture (drawn about the image's centre
 #: column): x, cos, sin | x_dot, theta_dot, as cartpole-balance's ``TaskSpec.mirror``.
 SYNTH_MIRROR = (-1.0, 1.0, -1.0, -1.0, -1.0)
@@ -110,9 +111,9 @@ def render_synthetic(physics: np.ndarray, background_seed: int, agent_rgb: np.nd
     floor = int(size * 0.8)
     image[floor:] = (90, 90, 90)
     x, theta = float(physics[0]), float(physics[1])
-    if tracked:  # the floor's stripes and the background move past a cart held at the centre
-        image[floor:, (xx[0] // 4) % 2 == 0] = (60, 60, 60)
-        image = np.roll(image, -round(x * _TRACKED_SHIFT * size), axis=1)
+    if tracked:  # the floor's waves move past a cart held at the centre; the sky stays
+        phase = 2 * np.pi * (xx[0] / size + x * _TRACKED_SHIFT)
+        image[size // 2:] = np.round(75 + 50 * np.sin(2 * phase)).astype(np.uint8)[:, None]
         x = 0.0
     colour = tuple(int(c) for c in np.round(np.asarray(agent_rgb, np.float64) * 255))
     cx = round(size / 2 + x * size / 6)

@@ -629,12 +629,12 @@ def latent_agreement(student: Student, teacher: Teacher, batch: Mapping[str, tor
                                         t_post["logits"])
         if student.perception.readout is not None:
             features = student.perception.encoder(batch["image"])
-            before = (student.perception.encoder(batch[PAIR_IMAGE]) if PAIR_IMAGE in batch
-                      else None)
-            frames["read_error"] = student.perception.readout.error(features, batch["state"],
-                                                                    before=before)
+            motion = (student.perception.motion_features(batch[PAIR_IMAGE], batch["image"])
+                      if PAIR_IMAGE in batch else None)
+            frames["read_error"] = student.perception.readout.error(
+                features, batch["state"], motion_features=motion)
             frames["read_error_typical"] = student.perception.readout.error(
-                features, batch["state"], config.readout_stage.typical_spreads, before)
+                features, batch["state"], config.readout_stage.typical_spreads, motion)
     deter = student.config.rssm.deter
     h_mse = float(terms["h"]) / deter
     # An h-MSE means little without the scale of the teacher's h (on cartpole its variance is

@@ -73,12 +73,13 @@ class StateEncoder(MLP):
 
 
 class ImageEncoder(nn.Module):
-    """DreamerV2's CNN: uint8 or [-0.5, 0.5] images [..., 64, 64, 3] -> [..., 1536] (depth 48)."""
+    """DreamerV2's CNN: uint8 or [-0.5, 0.5] images [..., 64, 64, 3] -> [..., 1536] (depth 48);
+    ``channels`` 6 reads two frames stacked (a frame pair)."""
 
-    def __init__(self, config: CNNConfig) -> None:
+    def __init__(self, config: CNNConfig, channels: int = 3) -> None:
         super().__init__()
         layers: list[nn.Module] = []
-        channels = 3
+        self.channels = channels
         for i, (kernel, stride) in enumerate(zip(config.encoder_kernels,
                                                  config.encoder_strides(), strict=True)):
             out = config.depth * 2**i

@@ -19,7 +19,7 @@ from torch import nn
 
 from twist_data.errors import ConfigError
 from twist_models.config import StudentConfig
-from twist_models.networks import ImageEncoder
+from twist_models.networks import ImageEncoder, preprocess_image
 from twist_models.readout import StateReadOut
 
 
@@ -80,9 +80,9 @@ class StateReading(Perception):
     """The CNN's features read as the teacher's state and embedded by the teacher's own state
     encoder: the history is the last step's reading, whose difference gives the velocities
     (and the frames read so far where it pools a component, ``ReadOutConfig.pooled``), then
-    where any velocity is moving (``ReadOutConfig.moving``) the last frame's CNN features,
-    with which this frame's make the pair the moving velocities are read from: acting holds
-    one scene per episode, so the frame before is the step before in the same scene."""
+    where any velocity is moving (``ReadOutConfig.moving``) the last frame, with which this
+    one makes the pair a second CNN (``motion_encoder``) reads them from: acting holds one
+    scene per episode, so the frame before is the step before in the same scene."""
 
     trains_filter = False
 
@@ -91,7 +91,12 @@ class StateReading(Perception):
         if config.readout is None:
             raise ConfigError("a state-reading student needs StudentConfig.readout")
         self.encoder = ImageEncoder(config.cnn)
-        self.readout = StateReadOut(config.readout, self.encoder.out_dim)
+        #: Reads a frame pair stacked as six channels (None: no velocity is moving).
+        self.motion_encoder = (ImageEncoder(config.cnn, channels=6) if config.readout.moving
+                               else None)
+        self.readout = StateReadOut(config.readout, self.encoder.out_dim,
+                                    0 if self.motion_encoder is None
+                                    else self.motion_encoder.out_dim)
         self.readout.encoder.requires_grad_(False)  # the teacher's (copy_teacher_filter)
         self.out_dim = self.readout.out_dim
 
@@ -102,11 +107,11 @@ class StateReading(Perception):
         positions = self.readout.pool_window(self.read_positions(image, features), is_first)
         previous = None if before is None else self.read_positions(before)
         motion = None
-        if self.readout.motion is not None:
+        if self.motion_encoder is not None:
             if pair is None:
                 raise ConfigError(f"velocity components {list(self.readout.config.moving)} "
                                   "are read from frame pairs: windows need their pair_image")
-            motion = self.readout.read_motion(self.encoder(pair), features)
+            motion = self.readout.read_motion(self.motion_features(pair, image))
         return self.embed_state(self.readout.window_state(positions, is_first, previous,
                                                           motion))
 
@@ -118,11 +123,19 @@ class StateReading(Perception):
         positions, previous, after = self.readout.pool_step(
             reading, None if history is None else history[..., :width])
         motion = None
-        if self.readout.motion is not None:  # at an episode's start the frame is its own pair
-            before = features if history is None else history[..., width:]
-            motion = self.readout.read_motion(before, features)
-            after = torch.cat([after.float(), features.float()], -1)
+        if self.motion_encoder is not None:  # at an episode's start the frame is its own pair
+            frame = preprocess_image(image)
+            before = frame if history is None else history[..., width:].reshape(frame.shape)
+            motion = self.readout.read_motion(self.motion_features(before, frame))
+            after = torch.cat([after.float(), frame.flatten(1).float()], -1)
         return self.embed_state(self.readout.state(positions, previous, motion)), after
+
+    def motion_features(self, pair: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        """The motion CNN's features of frame pairs: the frame before (uint8, or float as
+        :func:`~twist_models.networks.preprocess_image` gives it) [..., H, W, 3] and the frame
+        [..., H, W, 3] -> [..., F']."""
+        return self.motion_encoder(torch.cat([preprocess_image(pair).to(torch.float32),
+                                              preprocess_image(image).to(torch.float32)], -1))
 
     def read_positions(self, image: torch.Tensor, features: torch.Tensor | None = None
                        ) -> torch.Tensor:

@@ -12,9 +12,12 @@ images. This module lets the student hand that filter a state instead of an imag
   difference wrapped to (-pi, pi]); which component is the rate of which, and the gain, are
   measured on D by :func:`pair_velocities`, so no task needs a hand-written table;
 * a velocity that is the rate of nothing one frame shows (a root a camera tracks, whose
-  position no state holds) is read by a second head from the CNN's features of a pair of
-  frames of one scene: the step before and the step (D's ``pair_image``; acting: the
-  episode's previous frame), in units of its robust spread, as the positions;
+  position no state holds) is read by a second head from a second CNN's features of a pair
+  of frames of one scene stacked as six channels: the step before and the step (D's
+  ``pair_image``; acting: the episode's previous frame), in units of its robust spread, as
+  the positions. Stacked, so that the first layer compares the two frames pixel by pixel:
+  two frames encoded apart show a displacement only through positions no state holds
+  (docs/design.md, "Velocities no frame shows");
 * the teacher's own state encoder (copied, fixed) embeds the result for the teacher's
   posterior.
 
@@ -189,7 +192,7 @@ def training_frames(typical_rows: np.ndarray, mode: str, max_atypical_share: flo
 class StateReadOut(nn.Module):
     """CNN features -> the teacher's state -> the teacher's state embedding."""
 
-    def __init__(self, config: ReadOutConfig, features: int) -> None:
+    def __init__(self, config: ReadOutConfig, features: int, motion_features: int = 0) -> None:
         super().__init__()
         self.config = config
         self.head = nn.Linear(features, len(config.read))
@@ -214,39 +217,41 @@ class StateReadOut(nn.Module):
         #: The slots of ``config.pooled`` in the read vector.
         self.pooled_slots = [position[i] for i in config.pooled]
         moving = len(config.moving)
+        if moving and motion_features < 1:
+            raise ConfigError(f"velocity components {list(config.moving)} are read from frame "
+                              "pairs: the read-out needs the width of a pair's features")
         #: Reads the ``config.moving`` velocities from a frame pair's features (None: none).
-        self.motion = nn.Linear(2 * features, moving) if moving else None
+        self.motion = nn.Linear(motion_features, moving) if moving else None
         # Saved only where there are any: bundles written before they existed still load.
         self.register_buffer("motion_mean", torch.zeros(moving), persistent=bool(moving))
         self.register_buffer("motion_scale", torch.ones(moving), persistent=bool(moving))
         self.register_buffer("motion_weight", torch.ones(moving), persistent=False)
 
     def loss(self, features: torch.Tensor, state: torch.Tensor, delta: float,
-             before: torch.Tensor | None = None) -> torch.Tensor:
+             motion_features: torch.Tensor | None = None) -> torch.Tensor:
         """The first stage's term: CNN features [..., F] and the true state [..., S] -> []:
-        the Huber loss of :meth:`errors` times ``loss_weight`` (and, with the features of
-        each frame's pair frame ``before`` [..., F], of :meth:`motion_errors` times
-        ``motion_weight``), quadratic to ``delta`` units (robust spreads unless
-        :meth:`weigh_by_teacher` set other units; :func:`~twist_models.losses.readout_loss`)."""
+        the Huber loss of :meth:`errors` times ``loss_weight`` (and, with each frame's pair's
+        features [..., F'], of :meth:`motion_errors` times ``motion_weight``), quadratic to
+        ``delta`` units (robust spreads unless :meth:`weigh_by_teacher` set other units;
+        :func:`~twist_models.losses.readout_loss`)."""
         errors = self.errors(self.read(features), state) * self.loss_weight
         if self.motion is not None:
-            motion = self.motion_errors(self.read_motion(self._before(before), features), state)
+            motion = self.motion_errors(self.read_motion(self._given(motion_features)), state)
             errors = torch.cat([errors, motion * self.motion_weight], -1)
         return readout_loss(errors, delta)
 
-    def _before(self, before: torch.Tensor | None) -> torch.Tensor:
-        if before is None:
+    def _given(self, value: torch.Tensor | None) -> torch.Tensor:
+        if value is None:
             raise ConfigError(f"velocity components {list(self.config.moving)} are read from "
                               "frame pairs, and none was given")
-        return before
+        return value
 
-    def read_motion(self, before: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-        """The ``config.moving`` velocities in the state's units, from the CNN's features of
-        the frame before [..., F] and of the frame [..., F], one scene -> [..., M]."""
+    def read_motion(self, motion_features: torch.Tensor) -> torch.Tensor:
+        """The ``config.moving`` velocities in the state's units, from the features of a
+        frame pair of one scene [..., F'] -> [..., M]."""
         if self.motion is None:
-            return features.new_zeros(*features.shape[:-1], 0)
-        reading = self.motion(torch.cat([before.to(features.dtype), features], -1)).float()
-        return reading * self.motion_scale + self.motion_mean
+            return motion_features.new_zeros(*motion_features.shape[:-1], 0)
+        return self.motion(motion_features).float() * self.motion_scale + self.motion_mean
 
     def motion_errors(self, motion: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         """:meth:`read_motion`'s errors in units of D's robust spread: [..., M], the true state
@@ -313,17 +318,18 @@ class StateReadOut(nn.Module):
 
     @torch.no_grad()
     def error(self, features: torch.Tensor, state: torch.Tensor,
-              within: float | None = None, before: torch.Tensor | None = None) -> float:
+              within: float | None = None, motion_features: torch.Tensor | None = None
+              ) -> float:
         """RMS of :meth:`errors` over steps and components: features [..., F], state
-        [..., S] -> a float; with the pair frames' features ``before`` [..., F], of
+        [..., S] -> a float; with the frame pairs' features [..., F'], of
         :meth:`motion_errors` too. With ``within``, only over the steps whose every read
         component lies within that many robust spreads of D's median, as :func:`typical`
         picks the frames the first stage trains on (NaN where none does): a fallen pole's
         frames, read tens of spreads off by design, would otherwise outweigh every other
         frame's error."""
         errors = self.errors(self.read(features), state)
-        if self.motion is not None and before is not None:
-            errors = torch.cat([errors, self.motion_errors(self.read_motion(before, features),
+        if self.motion is not None and motion_features is not None:
+            errors = torch.cat([errors, self.motion_errors(self.read_motion(motion_features),
                                                            state)], -1)
         if within is not None:
             read = state[..., list(self.config.read)]
@@ -383,7 +389,7 @@ class StateReadOut(nn.Module):
         for k, rate in rates:
             state[..., self.config.velocities[k][0]] = rate
         if self.motion is not None:
-            state[..., list(self.config.moving)] = self._before(motion).to(state.dtype)
+            state[..., list(self.config.moving)] = self._given(motion).to(state.dtype)
         return state
 
     def pool_step(self, reading: torch.Tensor, history: torch.Tensor | None

@@ -241,20 +241,6 @@ class DRRenderer:
         """Render the K views of ``physics`` under ``params`` ({name: [K, ...]}) -> [K, H, W, 3]."""
         return self.render_states([physics], [params], out=None if out is None else out[None])[0]
 
-    def render_pair(self, previous: np.ndarray, current: np.ndarray,
-                    params: Mapping[str, np.ndarray]) -> np.ndarray:
-        """The K views of the ``previous`` physics and of the ``current`` one, both under
-        ``params`` and framed by the current step's camera and lights -> [2, K, H, W, 3].
-
-        A tracking camera (cheetah's, walker's, hopper's) follows the body, so one frame
-        shows none of its speed, and D redraws its scene at every step, so two consecutive
-        frames of D share no scene; this pair differs by the body's motion alone. Its second
-        frame is :meth:`render` of ``current``, bit for bit (tested)."""
-        pair = np.empty((2, self.views, self.image_size, self.image_size, 3), np.uint8)
-        self.render_states([previous], [params], out=pair[:1], framed_by=[current])
-        self.render_states([current], [params], out=pair[1:])
-        return pair
-
     def render_states(self, physics: Sequence[np.ndarray],
                       params: Sequence[Mapping[str, np.ndarray]],
                       places: Sequence[int] | None = None,
@@ -264,8 +250,9 @@ class DRRenderer:
         ``places[i]`` (default i) of the ``states`` the framebuffer holds, and read them
         back at once -> [N, K, H, W, 3]. A batch of environments so saves N - 1 read-backs,
         each of which waits for the GPU to finish drawing. With ``framed_by``, state i is
-        seen from where the camera and lights stood in physics ``framed_by[i]`` (see
-        :meth:`render_pair`).
+        seen from where the camera and lights stood in physics ``framed_by[i]``: a tracking
+        camera held still, which shows the body's motion between the two (not what acting
+        sees, whose camera follows; research/probes/pair_speed.py compares both).
 
         A frame depends on its place by at most one level in a few pixels (the rasteriser
         rounds at another offset): a state drawn in the same place is pixel-identical to

@@ -4,9 +4,9 @@ A tracking camera (cheetah's, walker's, hopper's) follows the body, so no single
 forward speed, and D redraws its scene at every step, so two consecutive frames of D differ by
 the whole scene as well as by the motion. :func:`twist_sim.rerender.reproduce_pairs` draws the
 step before in this step's scene, so that the two differ by the motion alone. This trains the
-same small CNN (shared between the two frames of an input, a linear head on their features) to
-read one state component from each kind of input, on the same steps of D's first episodes, and
-scores it on its last ones (R^2; 0 is predicting the mean):
+same small CNN (two frames stacked as six channels, as the read-out's motion CNN reads them; a
+linear head on its features) to read one state component from each kind of input, on the same
+steps of D's first episodes, and scores it on its last ones (R^2; 0 is predicting the mean):
 
 * ``frame``: the step's frame alone;
 * ``consecutive``: D's frames of the step before and of the step, each in its own scene;
@@ -68,15 +68,16 @@ def framed(dataset, steps: np.ndarray) -> np.ndarray:
 
 
 class Reader(nn.Module):
-    """A small CNN on each frame, a linear head on the frames' features side by side."""
+    """A small CNN on the frames stacked along their channels, a linear head on its features."""
 
     def __init__(self, frames: int) -> None:
         super().__init__()
-        self.cnn = ImageEncoder(CNNConfig(depth=16, norm="layer"))
-        self.head = nn.Linear(frames * self.cnn.out_dim, 1)
+        self.cnn = ImageEncoder(CNNConfig(depth=16, norm="layer"), channels=3 * frames)
+        self.head = nn.Linear(self.cnn.out_dim, 1)
 
     def forward(self, *frames: torch.Tensor) -> torch.Tensor:
-        return self.head(torch.cat([self.cnn(f) for f in frames], -1)).squeeze(-1)
+        return self.head(self.cnn(torch.cat([f.float() / 255 - 0.5 for f in frames],
+                                            -1))).squeeze(-1)
 
 
 def score(frames: list[np.ndarray], target: np.ndarray, heldout: np.ndarray, updates: int,

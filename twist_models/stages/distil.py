@@ -640,11 +640,12 @@ class Distiller:
                     batch["pair"][flip] = batch["pair"][flip].flip(-2)
             with precision_autocast(c.compute.precision, self.device):  # most recent frame first:
                 embed = self.student.perception.encoder(batch["image"]).flatten(1).float()
-                before = (self.student.perception.encoder(batch["pair"]).float()
+                motion = (self.student.perception.motion_features(batch["pair"],
+                                                                  batch["image"][:, 0]).float()
                           if "pair" in batch else None)
             if self.student.perception.readout is not None:
                 terms = {"readout": self.student.perception.readout.loss(
-                    embed, batch["state"], c.readout_stage.huber_delta, before)}
+                    embed, batch["state"], c.readout_stage.huber_delta, motion)}
                 loss = terms["readout"]
             else:
                 terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
