@@ -19,6 +19,7 @@ from twist_data.writer import ShardWriter
 from twist_sim.randomisation import VIEW_PARAMS, dr_preset
 from twist_sim.render import DRRenderer
 from twist_sim.rerender import (
+    check_reproduction,
     render_blocks,
     renderer_for_block,
     reproduce_dataset,
@@ -104,7 +105,21 @@ def test_stored_pairs_are_direct_renders_of_the_step_before_in_the_steps_scene(
     scenes = np.abs(image[:, :-1] - image[:, 1:]).mean()
     assert 0 < motion < scenes / 2
     np.testing.assert_array_equal(reproduce_pairs(source, np.arange(source.n_steps)), pairs)
-    assert verify_dataset(paired).ok
+    assert verify_dataset(paired).ok and check_reproduction(data, 8) == []
+
+
+def test_a_redrawn_pair_that_differs_is_reported(paired: Path, tmp_path: Path) -> None:
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(paired, copy)
+    group = zarr.open_group(str(copy / "collect-000.zarr"), mode="r+")
+    pairs = group[f"data/{PAIR_IMAGE}"]
+    frame = pairs[3, 1]
+    pairs[3, 1] = 255 - frame  # rewritten whole, checksums and all: only a redraw tells
+    problems = check_reproduction(open_dataset(copy), open_dataset(copy).n_steps)
+    assert problems and all("step 3 view 1: the redrawn pair frame differs" in p
+                            for p in problems)
 
 
 def test_a_stripped_paired_dataset_rebuilds_its_pairs(paired: Path,

@@ -26,7 +26,7 @@ import numpy as np
 
 from twist_data.errors import ConfigError, SchemaMismatchError
 from twist_data.reader import MatchingDataset, open_dataset
-from twist_data.schema import DatasetSpec, Episode, image_digest, step_arrays
+from twist_data.schema import PAIR_IMAGE, DatasetSpec, Episode, image_digest, step_arrays
 from twist_data.seeding import derived_seed
 from twist_data.staging import built_aside, require_new_folder
 from twist_data.storage import StorageLayout
@@ -143,6 +143,18 @@ def check_reproduction(dataset: MatchingDataset, n_steps: int, seed: int = 0) ->
             diff = np.abs(rendered[i, v].astype(np.int16) - stored[i, v]).max()
             if diff:
                 problems.append(f"step {step} view {v}: re-render differs by up to {diff} levels")
+    if dataset.has_pairs:
+        redrawn = reproduce_pairs(dataset, steps)
+        stored = np.empty((steps.size * k, *dataset.spec.image_shape), np.uint8)
+        dataset.read_frames(np.repeat(steps, k), np.tile(np.arange(k), steps.size), stored,
+                            key=PAIR_IMAGE)
+        stored = stored.reshape(redrawn.shape)
+        for i, step in enumerate(steps.tolist()):
+            for v in range(k):
+                diff = np.abs(redrawn[i, v].astype(np.int16) - stored[i, v]).max()
+                if diff:
+                    problems.append(f"step {step} view {v}: the redrawn pair frame differs by "
+                                    f"up to {diff} levels")
     return problems
 
 
