@@ -175,6 +175,14 @@ def test_shards_with_and_without_pairs_form_no_dataset(recorded: Path, paired: P
     with pytest.raises(SchemaMismatchError, match="collect-000 stores frame pairs and "
                                                   "collect-001 does not"):
         open_dataset(mixed)
+    # A shard that lost its pairs' metadata is damage verify names, not a quiet difference.
+    lost = tmp_path / "lost"
+    shutil.copytree(paired, lost)
+    (lost / "collect-001.zarr" / "data" / PAIR_IMAGE / "zarr.json").unlink()
+    report = verify_dataset(lost)
+    assert [(p.shard, p.array) for p in report.problems] == [("collect-001",
+                                                              f"data/{PAIR_IMAGE}")]
+    assert "lacks the frame pairs" in report.problems[0].message
 
 
 def test_new_renders_and_added_views_carry_pairs(recorded: Path, paired: Path,

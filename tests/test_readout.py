@@ -111,6 +111,7 @@ def test_a_velocity_is_paired_down_to_min_pairing_and_read_from_pairs_below_it(i
     assert paired.velocities[0] == (3, 0) and paired.moving == ()
     loose = pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth", min_pairing=0.8)
     assert loose.moving == (3,) and [v[0] for v in loose.velocities] == [4]
+    assert loose.moving_pairing == pytest.approx((corr,), abs=1e-4)
     assert pair_velocities(state, is_first, LAYOUT, MLPConfig(), "synth",
                            min_pairing=corr - 0.001).velocities[0] == (3, 0)
     with pytest.raises(ConfigError, match="min_pairing must lie in"):
@@ -970,8 +971,9 @@ def test_a_tracked_task_distils_end_to_end_and_its_agent_reads_the_frame_before(
     for folder in bare.glob(f"*.zarr/data/{PAIR_IMAGE}"):
         shutil.rmtree(folder)
     with pytest.raises(PairsMissingError, match=r"the readout recipe on "
-                       r"synthetic-cartpole-tracked \(velocity components \[2\] are the rate "
-                       r"of nothing one frame shows\) needs frame pairs .* twist-data render "
-                       r".*bare OUT --reproduce --pairs"):
+                       r"synthetic-cartpole-tracked \(velocity components \[2\] pair with no "
+                       r"component one frame shows: best correlations \[0\.\d+\], below "
+                       r"readout_stage\.min_pairing 0\.7\) needs frame pairs .* twist-data "
+                       r"render .*bare OUT --reproduce --pairs"):
         distil(bare, tmp_path / "refused", config, teacher=teacher)
     assert not (tmp_path / "refused").exists()

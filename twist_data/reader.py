@@ -103,7 +103,8 @@ class ShardReader:
         self.attrs = dict(block)
         self.images = ImagesRecord.from_attrs(block)
         #: Whether the shard stores frame pairs (``data/pair_image``, datasets.md §2).
-        self.has_pairs = self.images.stored and PAIR_IMAGE in self._group["data"]
+        self.has_pairs = (self.images.stored and "data" in self._group
+                          and PAIR_IMAGE in self._group["data"])
         commit = block["commit"]
         self.n_episodes = int(commit["n_episodes"])
         self.n_steps = int(commit["n_steps"])
@@ -493,8 +494,8 @@ class MatchingDataset:
         return self.shards[0].has_pairs
 
     def require_pairs(self, needed_by: str | None = None) -> None:
-        """Raise :class:`PairsMissingError` naming ``needed_by`` and the command that adds
-        the pairs when the dataset stores none (a stripped one: what rebuilds its images)."""
+        """Raise :class:`PairsMissingError` naming ``needed_by`` and the command that adds the
+        pairs when the dataset stores none (a stripped one: what rebuilds its images)."""
         self.require_images(needed_by)
         if not self.has_pairs:
             who = f"{needed_by} needs" if needed_by else "reading them needs"

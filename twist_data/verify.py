@@ -289,6 +289,11 @@ def verify_dataset(path: str | os.PathLike[str],
             if s.spec.schema_key() != ref.spec.schema_key():
                 report.problems.append(Problem(
                     s.name, f"schema differs from shard {ref.name}; they cannot form one dataset"))
+            elif s.has_pairs != ref.has_pairs:
+                report.problems.append(Problem(
+                    s.name, f"{'stores' if s.has_pairs else 'lacks'} the frame pairs "
+                            f"(data/{PAIR_IMAGE}) that shard {ref.name} "
+                            f"{'lacks' if s.has_pairs else 'stores'}", f"data/{PAIR_IMAGE}"))
     total = sum(s.n_steps * (2 if s.has_pairs else 1) for s in shards)
     done = 0
 

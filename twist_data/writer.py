@@ -107,7 +107,7 @@ class ShardWriter:
             return group[key].with_config({"write_empty_chunks": True})
 
         #: Whether the shard stores frame pairs (``data/pair_image``, made by :meth:`create`).
-        self.pairs = PAIR_IMAGE in group["data"]
+        self.pairs = "data" in group and PAIR_IMAGE in group["data"]
         self._step_arrays = {a.path: opened(a.path) for a in step_arrays(self.spec, self.pairs)}
         self._frames: dict[str, FrameWriter] = {}
         for name in FRAME_ARRAYS:

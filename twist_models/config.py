@@ -346,6 +346,9 @@ class ReadOutConfig:
     """Velocities that are the rate of nothing one frame shows (a tracked root's speed): read
     by a head on the CNN's features of the step's frame pair, the step before and the step
     in one scene (D's ``pair_image``; acting: the episode's previous frame)."""
+    moving_pairing: tuple[float, ...] = ()
+    """Per ``moving`` velocity, its best correlation with a read component's change on D
+    (below ``ReadOutStage.min_pairing``; empty in runs recorded before it was kept)."""
     mirror: tuple[float, ...] = ()
     """Per component of ``read``, the sign it takes when the view is mirrored left to right
     (the task's ``TaskSpec.mirror``): given, each image is read as the mean of its own reading

@@ -173,7 +173,7 @@ class ReadOutStage:
     min_pairing: float = MIN_PAIRING
     """The least correlation, over D's steps, between a velocity and the difference of
     successive read-outs it is derived from; below it the velocity counts as one no image
-    shows and distillation is refused, naming it. Measured: cartpole 0.99; cup-catch
+    shows and is read from frame pairs (D's ``pair_image``). Measured: cartpole 0.99; cup-catch
     0.90-0.97; hopper-stand 0.91-0.95; panda-push's block, which stops within an agent step
     under friction, 0.76-0.87; cheetah-run's root speed, which no image shows, 0.43."""
     units: str = "robust"

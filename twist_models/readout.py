@@ -117,16 +117,18 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
     candidates = {(i,): change[:, i] for i in read if i not in in_pairs}
     for c, s in angles:
         candidates[(c, s)] = wrapped(np.diff(np.arctan2(states[:, s], states[:, c]))[step])
-    velocities, gains, moving = [], [], []
+    velocities, gains, moving, pairing = [], [], [], []
     for v in derived:
         target = states[1:, v][step]
         scores = {k: abs(_correlation(d, target)) for k, d in candidates.items()}
         best = max(scores, key=scores.__getitem__, default=None)
         if best is None or scores[best] < min_pairing:
+            score = scores[best] if best is not None else 0.0
             log.info("velocity component %d of %s is read from frame pairs (best correlation "
-                     "%.2f with a read component's change, needs %s)", v, task,
-                     scores[best] if best is not None else 0.0, min_pairing)
+                     "%.2f with a read component's change, needs %s)", v, task, score,
+                     min_pairing)
             moving.append(v)
+            pairing.append(score)
             continue
         taken = {tuple(pair[1:]): pair[0] for pair in velocities}
         if best in taken:
@@ -137,7 +139,8 @@ def pair_velocities(states: np.ndarray, is_first: np.ndarray,
         velocities.append((v, *best))
     return ReadOutConfig(state_dim=states.shape[1], read=tuple(read), angles=tuple(angles),
                          velocities=tuple(velocities), gains=tuple(gains), encoder=encoder,
-                         hidden=tuple(sorted(hidden)), moving=tuple(moving))
+                         hidden=tuple(sorted(hidden)), moving=tuple(moving),
+                         moving_pairing=tuple(round(p, 4) for p in pairing))
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:

@@ -51,12 +51,13 @@ class Student(nn.Module):
         return self.perception.step(image, history)
 
     def observe(self, image: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
-                uniform: torch.Tensor | None = None, read: str = "sample"
-                ) -> tuple[State, State]:
+                uniform: torch.Tensor | None = None, read: str = "sample",
+                pair: torch.Tensor | None = None) -> tuple[State, State]:
         """Filter windows of images: image uint8 [B, T, H, W, 3], action [B, T, A],
-        is_first [B, T] -> (posterior, prior) states {k: [B, T, ...]}; ``read`` as in
+        is_first [B, T] (and each step's pair frame [B, T, H, W, 3] where the perception reads
+        pairs) -> (posterior, prior) states {k: [B, T, ...]}; ``read`` as in
         :meth:`~twist_models.rssm.RSSM.post_step`."""
-        return self.rssm.observe(self.embed(image, is_first), action, is_first,
+        return self.rssm.observe(self.embed(image, is_first, pair=pair), action, is_first,
                                  uniform=uniform, read=read)
 
     def read_state(self, embed: torch.Tensor) -> torch.Tensor:
