@@ -977,3 +977,29 @@ def test_a_tracked_task_distils_end_to_end_and_its_agent_reads_the_frame_before(
                        r"render .*bare OUT --reproduce --pairs"):
         distil(bare, tmp_path / "refused", config, teacher=teacher)
     assert not (tmp_path / "refused").exists()
+
+
+def test_no_registered_task_is_refused_by_the_readout() -> None:
+    """Every task's velocities are derived or read from frame pairs: random-policy steps of
+    each registered task give a read-out that covers its whole state."""
+    from twist_sim.tasks import TASKS, TaskEnv, load_task_modules
+
+    load_task_modules()
+    for name in TASKS:
+        env = TaskEnv(name, max_steps=40, seed=0)
+        rng = np.random.default_rng(0)
+        states, first = [], []
+        for episode in range(3):
+            step = env.reset(seed=episode)
+            while True:
+                states.append(step.state)
+                first.append(step.is_first)
+                if step.is_last:
+                    break
+                step = env.step(rng.uniform(-1, 1, env.action_dim))
+        config = pair_velocities(np.stack(states), np.array(first), env.state_layout,
+                                 MLPConfig(layers=1, units=8), name)
+        derived = {v[0] for v in config.velocities}
+        names = [block for block, size in env.state_layout for _ in range(size)]
+        velocities = [i for i, block in enumerate(names) if block == "velocity"]
+        assert derived | set(config.moving) == set(velocities), name
