@@ -97,3 +97,17 @@ def test_baseline_learns_behaviour_with_the_teachers_settings_and_its_own_sizes(
     assert (chosen.actor, chosen.critic) == (preset.actor, preset.critic)
     # A dataset that records no teacher (synthetic, or written by hand) keeps the preset.
     assert behaviour_config({}, preset) == preset
+
+
+def test_a_damaged_dataset_is_refused_with_nothing_left_behind(tmp_path) -> None:
+    from twist_data.errors import DatasetCorruptError
+
+    damaged = write_synthetic_dataset(tmp_path / "ds", SynthConfig(episodes=4, steps=20,
+                                                                   image_size=64, seed=3))
+    chunk = next(damaged.glob("*.zarr")) / "data" / "state" / "c" / "0" / "0"
+    chunk.write_bytes(chunk.read_bytes()[:-7])  # a truncated state chunk: only reading finds it
+    config = BaselineConfig(model="tiny", steps=2, batch_size=2, length=8, imag_starts=4,
+                            workers=0)
+    with pytest.raises(DatasetCorruptError, match="data/state"):
+        train_baseline(damaged, tmp_path / "run", config)
+    assert not (tmp_path / "run").exists()

@@ -16,6 +16,7 @@ them the student's update budget (``--steps``).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import logging
 import os
@@ -155,7 +156,9 @@ def _set_up(data: MatchingDataset, dataset: Path, out: Path, config: BaselineCon
                                   num_workers=config.workers))
     except TwistError as exc:
         raise BaselineError(f"no training windows: {exc}") from None
-    return model, windows
+    # The first batch reads D's arrays whole: damage there is refused with the set-up undone.
+    first = next(windows)
+    return model, itertools.chain([first], windows)
 
 
 def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
