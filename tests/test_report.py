@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -294,3 +295,17 @@ def test_every_student_column_is_an_agent_with_a_valid_recipe() -> None:
         # Each ablation changes exactly what it names, and changes something.
         now, before = json_leaves(to_json(config)), json_leaves(to_json(base))
         assert {k for k in changes if now[k] != before[k]} == set(changes), name
+
+
+def test_an_out_that_is_a_file_is_refused_before_any_stage_logs(tmp_path: Path,
+                                                                caplog: pytest.LogCaptureFixture
+                                                                ) -> None:
+    from twist_models.stages.report import ReportConfig, run_reproduction
+
+    target = tmp_path / "report.md"
+    target.write_text("mine")
+    with caplog.at_level(logging.INFO), pytest.raises(ConfigError, match=r"report folder "
+                                                      r".*report\.md' is a file; name a folder"):
+        run_reproduction(target, ReportConfig(tasks=("cartpole-balance",), seeds=(0,)))
+    assert not caplog.records and target.read_text() == "mine"
+    assert [p.name for p in tmp_path.iterdir()] == ["report.md"]

@@ -206,6 +206,8 @@ def run_reproduction(out: str | os.PathLike[str], config: ReportConfig, device: 
     """Run every stage of every (task, seed) that is not done yet, then aggregate: returns
     :func:`build_report`'s summary and writes ``results.csv``, ``report.md`` and ``iqm.png``."""
     out = Path(out)
+    if out.exists() and not out.is_dir():  # before any stage logs that it starts
+        raise ConfigError(f"report folder {str(out)!r} is a file; name a folder")
     resolve_device(device)
     require_writable(out, "report folder")
     for task in config.tasks:
