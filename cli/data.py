@@ -87,6 +87,9 @@ def info(dataset: DatasetArg,
     for key, value in rows:
         table.add_row(key, str(value))
     out.print(table)
+    out.print(f"checked without decoding a chunk: shards, arrays and their files; `twist-data "
+              f"verify {dataset}` decodes and checksums every byte", soft_wrap=True,
+              markup=False, highlight=False)
 
 
 @app.command()

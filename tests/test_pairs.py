@@ -213,3 +213,4 @@ def test_the_cli_adds_pairs(recorded: Path, tmp_path: Path) -> None:
     assert group[f"data/{PAIR_IMAGE}"].shape == group["data/image"].shape
     result = run_command("data", "info", str(tmp_path / "p"))
     assert result.returncode == 0 and "frame pairs" in result.stdout
+    assert f"twist-data verify {tmp_path / 'p'}` decodes and checksums" in result.stdout
