@@ -226,3 +226,16 @@ def test_a_shard_with_no_committed_episode_verifies(tmp_path: Path) -> None:
     report = verify_dataset(dataset)
     assert report.ok and report.shards == 2 and report.episodes == DATA.episodes
     assert open_dataset(dataset).shards[1].episode_starts.size == 0
+
+
+def test_exports_refuse_a_shard_that_lost_an_arrays_metadata(dataset: Path,
+                                                             tmp_path: Path) -> None:
+    from twist_data.export import export_hdf5, export_video
+
+    (shard_of(dataset) / "data" / "state" / "zarr.json").unlink()  # images still read
+    for export, out in ((lambda o: export_video(dataset, 0, o), tmp_path / "e.gif"),
+                        (lambda o: export_hdf5(dataset, o), tmp_path / "d.h5")):
+        with pytest.raises(DatasetCorruptError, match=r"refuses dataset .*data/state.*"
+                                                      r"twist-data verify .* lists every"):
+            export(out)
+        assert not out.exists()

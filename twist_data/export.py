@@ -16,6 +16,7 @@ from twist_data.errors import TwistError
 from twist_data.reader import open_dataset
 from twist_data.schema import EPISODE_COLUMNS, FORMAT_VERSION, step_arrays
 from twist_data.staging import require_memory, require_new_file
+from twist_data.verify import require_intact
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,7 @@ def export_video(dataset_path: str | os.PathLike[str], episode: int, out: str | 
         raise ExportError(f"scale must be >= 1, got {scale}")
     _check_video_path(Path(out), fps)
     require_new_file(Path(out), overwrite, "video file")
+    require_intact(dataset_path, "export-video")
     ds = open_dataset(dataset_path)
     shard, local = ds.episode_location(episode)  # refuses an index out of range
     spec, reader = ds.spec, ds.shards[shard]
@@ -128,6 +130,7 @@ def export_hdf5(dataset_path: str | os.PathLike[str], out: str | os.PathLike[str
     if out.is_dir():
         raise TwistError(f"{out} is a folder; give the path of the .h5 file to write")
     require_new_file(out, overwrite, "HDF5 file")
+    require_intact(dataset_path, "export-hdf5")
     ds = open_dataset(dataset_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")

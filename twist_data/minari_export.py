@@ -38,6 +38,7 @@ import numpy as np
 
 from twist_data.errors import TwistError, import_extra
 from twist_data.reader import MatchingDataset, open_dataset
+from twist_data.verify import require_intact
 
 log = logging.getLogger(__name__)
 
@@ -122,6 +123,7 @@ def export_minari(dataset_path: str | os.PathLike[str], dataset_id: str,
     ``dataset_id`` (``[namespace/]name-v<version>``) under ``root`` (:func:`minari_root`);
     returns its folder. An existing dataset of that ID is refused unless ``overwrite``."""
     minari = _minari()
+    require_intact(dataset_path, "export-minari")
     data = open_dataset(dataset_path)
     root = minari_root(root)
     if DATASET_ID.fullmatch(dataset_id) is None:

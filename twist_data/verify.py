@@ -227,6 +227,18 @@ def quick_problems(path: str | os.PathLike[str]) -> list[str]:
     return found
 
 
+def require_intact(path: str | os.PathLike[str], needed_by: str) -> None:
+    """Raise :class:`~twist_data.errors.DatasetCorruptError` naming the first problem
+    :func:`quick_problems` finds in the dataset at ``path`` (no chunk decoded): what every
+    reader that would otherwise read around the damage (an export of one episode) asks
+    first."""
+    found = quick_problems(path)
+    if found:
+        more = f" (and {len(found) - 1} more)" if len(found) > 1 else ""
+        raise DatasetCorruptError(f"{needed_by} refuses dataset {str(path)!r}: {found[0]}{more};"
+                                  f" twist-data verify {path} lists every problem")
+
+
 def _check_episodes(shard: ShardReader, loaded: dict[str, np.ndarray],
                     problem: Callable[..., None]) -> None:
     """The writer's own rules (:func:`~twist_data.schema.episode_problems`, one source) on
