@@ -110,23 +110,34 @@ def episodes(dataset: DatasetArg,
         out.print(shown.to_string(), markup=False, highlight=False, soft_wrap=True)
 
 
+#: Steps ``verify`` re-renders unless told otherwise, where D can be re-rendered: a few
+#: seconds, most of them the renderer's start.
+DEFAULT_RERENDER = 8
+
+
 @app.command()
 def verify(
     dataset: DatasetArg,
-    rerender: Annotated[int, typer.Option(
-        help="Also re-render this many random steps from their physics state and DR "
-             "parameters and require pixel-identical images (simulated datasets only).")] = 0,
+    rerender: Annotated[int | None, typer.Option(
+        help=f"Also re-render this many random steps from their physics state and DR "
+             f"parameters and require pixel-identical images (simulated datasets only; 0: "
+             f"none) [default: {DEFAULT_RERENDER} where D can be re-rendered].",
+        show_default=False)] = None,
 ) -> None:
     """Full integrity check; exit 0 when clean, 1 with one line per problem otherwise."""
-    if rerender < 0:
+    if rerender is not None and rerender < 0:
         raise ConfigError(f"--rerender takes a number of steps >= 0, got {rerender}")
     with progress_bar("verifying") as update:
         report = verify_dataset(dataset, on_progress=update)
+    if rerender is None:  # a checksum cannot tell a frame rewritten whole: a redraw can
+        data = open_dataset(dataset)
+        rerender = DEFAULT_RERENDER if data.has_images and "render" in data.spec.extra else 0
     if rerender > 0 and report.ok:
         from twist_sim.rerender import check_reproduction
 
         with progress_bar("re-rendering"):
             report.problems.extend(check_reproduction(open_dataset(dataset), rerender))
+            report.notes.append(f"{rerender} random steps re-rendered and compared")
     for note in report.notes:
         err.print(f"note: {note}")
     if report.ok:

@@ -214,3 +214,18 @@ def test_the_cli_adds_pairs(recorded: Path, tmp_path: Path) -> None:
     result = run_command("data", "info", str(tmp_path / "p"))
     assert result.returncode == 0 and "frame pairs" in result.stdout
     assert f"twist-data verify {tmp_path / 'p'}` decodes and checksums" in result.stdout
+
+
+def test_verify_redraws_a_sample_by_default_and_finds_frames_rewritten_whole(
+        recorded: Path, tmp_path: Path) -> None:
+    import shutil
+
+    assert run_command("data", "verify", str(recorded)).returncode == 0
+    copy = tmp_path / "copy"
+    shutil.copytree(recorded, copy)
+    for shard in copy.glob("*.zarr"):
+        images = zarr.open_group(str(shard), mode="r+")["data/image"]
+        images[:, 0] = 255 - images[:, 0]  # through zarr: every checksum stays valid
+    result = run_command("data", "verify", str(copy))
+    assert result.returncode == 1 and "re-render differs" in result.stderr
+    assert run_command("data", "verify", str(copy), "--rerender", "0").returncode == 0
