@@ -239,3 +239,60 @@ def test_exports_refuse_a_shard_that_lost_an_arrays_metadata(dataset: Path,
                                                       r"twist-data verify .* lists every"):
             export(out)
         assert not out.exists()
+
+
+def _rewrite(shard: Path, array: str, change) -> None:
+    """Rewrite the rows of ``array`` of ``shard`` that ``change`` changes, through zarr: every
+    checksum stays valid (and no chunk of zeros is dropped, as a whole rewrite would)."""
+    target = zarr.open_array(shard / array, mode="r+").with_config({"write_empty_chunks": True})
+    values = target[:]
+    changed = values.copy()
+    change(changed)
+    rows = np.flatnonzero((changed != values).reshape(len(values), -1).any(1)
+                          | np.isnan(changed.astype(float)).reshape(len(values), -1).any(1))
+    for row in rows.tolist():
+        target[row] = changed[row]
+
+
+@pytest.mark.parametrize(("array", "change", "rule"), [
+    ("data/is_first", lambda v: v.__setitem__(12 + 3, True),
+     r"episode 1 \(global 1\): is_first is set at its step 3"),
+    ("data/is_last", lambda v: v.__setitem__(12 + 11, False),
+     r"episode 1 \(global 1\): is_last is not set at its step 11"),
+    ("data/state", lambda v: v.__setitem__((24 + 5, 0), np.nan),
+     r"episode 2 \(global 2\): state is not finite at its step 5"),
+    ("data/action", lambda v: v.__setitem__((36 + 2, 0), 3.0),
+     r"episode 3 \(global 3\): action is not finite or outside \[-1, 1\] at its step 2"),
+    ("data/reward", lambda v: v.__setitem__(24 + 5, v[24 + 5] + 1.0),
+     r"episode 2 \(global 2\): stored return .* differs from the sum of rewards"),
+    ("meta/episode_ends", lambda v: v.__setitem__(0, 14),  # episode 0 swallows 1's start
+     r"episode 0 \(global 0\): is_first is set at its step 12"),
+])
+def test_the_sampler_refuses_damage_under_valid_checksums(dataset: Path, array: str, change,
+                                                          rule: str) -> None:
+    from twist_data.sampler import SamplerConfig, WindowSampler
+
+    _rewrite(shard_of(dataset), array, change)
+    keys = ("image", "state", "action", "reward", "is_first")
+    with pytest.raises(DatasetCorruptError, match=rf"shard synth-000, {rule}.*twist-data verify"):
+        WindowSampler(dataset, SamplerConfig(length=4, batch_size=2, keys=keys))
+    assert not verify_dataset(dataset).ok  # verify names it too
+
+
+def test_the_distiller_refuses_damage_under_valid_checksums_writing_nothing(
+        tmp_path: Path) -> None:
+    import torch
+
+    from twist_models.config import teacher_preset
+    from twist_models.distillation import distil_preset
+    from twist_models.stages.distil import distil
+    from twist_models.teacher import Teacher, save_teacher
+
+    data = write_synthetic_dataset(tmp_path / "ds", SynthConfig(episodes=8, steps=30, seed=5))
+    _rewrite(next(data.glob("*.zarr")), "data/reward", lambda v: v.__setitem__(45, v[45] + 1))
+    torch.manual_seed(0)
+    teacher = save_teacher(tmp_path / "t.pt", Teacher(teacher_preset("tiny", 5, 1)))
+    for recipe in ("paper", "readout"):
+        with pytest.raises(DatasetCorruptError, match=r"episode 1 \(global 1\): stored return"):
+            distil(data, tmp_path / recipe, distil_preset("tiny", recipe), teacher=teacher)
+        assert not (tmp_path / recipe).exists()

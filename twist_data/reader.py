@@ -523,6 +523,27 @@ class MatchingDataset:
             dr={p.name: table[f"dr/{p.name}"][local] for p in self.spec.episode_dr_params},
         )
 
+    def episode_returns(self) -> np.ndarray:
+        """Every committed episode's stored ``episode_return``, over shards [E]."""
+        return np.concatenate([s.episode_column("episode_return") for s in self.shards])
+
+    def rule_problem(self, columns: tuple[str, ...] = ("state", "action")) -> str | None:
+        """The first episode rule (:mod:`twist_data.rules`) D breaks, in one sentence naming
+        its shard and episode, or None: the flags, the stored returns and the ``columns``
+        asked for are checked (each read whole, as a sampler holds them)."""
+        from twist_data.rules import rule_problems
+
+        keys = ("is_first", "is_last", "reward", *columns)
+        problems = rule_problems(self.episode_starts, self.episode_ends,
+                                 {k: self.column(k) for k in keys}, self.episode_returns())
+        if not problems:
+            return None
+        episode, rule = problems[0]
+        shard, local = self.episode_location(episode)
+        more = f" ({len(problems) - 1} more episodes break a rule)" if len(problems) > 1 else ""
+        return (f"dataset {str(self.path)!r}, shard {self.shards[shard].name}, episode {local} "
+                f"(global {episode}): {rule}{more}; twist-data verify names every problem")
+
     def episode_location(self, index: int) -> tuple[int, int]:
         """(shard number, episode within that shard) of global episode ``index``; negative
         indices count from the end, as in Python (-1 is the last episode)."""

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
-from twist_data.errors import SamplerConfigError
+from twist_data.errors import DatasetCorruptError, SamplerConfigError
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.schema import FRAME_ARRAYS, PAIR_IMAGE, step_arrays
 
@@ -241,6 +241,12 @@ class WindowSampler:
             )
         self._columns = {k: self.dataset.column(k) for k in self.config.keys
                          if k not in FRAME_ARRAYS}
+        # Damage under valid checksums (a flag moved, a NaN, a rewritten reward) would be
+        # served as data: the rules are checked on the columns just read.
+        problem = self.dataset.rule_problem(tuple(k for k in ("state", "action")
+                                                  if k in self._columns))
+        if problem is not None:
+            raise DatasetCorruptError(problem)
         self.cache.clear(self.dataset.n_steps * self.dataset.spec.views)
 
     def refresh(self) -> int:

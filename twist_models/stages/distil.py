@@ -34,7 +34,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader
 
-from twist_data.errors import TwistError
+from twist_data.errors import SamplerConfigError, TwistError
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.sampler import (
     ResidentWindows,
@@ -450,7 +450,7 @@ class Distiller:
         try:
             sampler = WindowSampler(self.data, c.sampler("heldout", derived_seed(c.seed, 1),
                                                          c.schedule.heldout_windows, self.pairs))
-        except TwistError as exc:
+        except SamplerConfigError as exc:  # damage is its own error, not "no windows"
             raise DistilError(f"no held-out windows (every {c.schedule.holdout_every}th episode is held "
                               f"out): {exc}; lower schedule.holdout_every or the window length") from None
         return split_context(_to_device(sampler.batch(), self.device),
@@ -469,7 +469,7 @@ class Distiller:
                                 pin_memory=self.device.type == "cuda",
                                 persistent_workers=c.compute.workers > 0,
                                 prefetch_factor=4 if c.compute.workers else None)
-        except TwistError as exc:
+        except SamplerConfigError as exc:
             raise DistilError(f"no training windows: {exc}") from None
         return iter(loader)
 
