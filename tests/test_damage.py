@@ -296,3 +296,13 @@ def test_the_distiller_refuses_damage_under_valid_checksums_writing_nothing(
         with pytest.raises(DatasetCorruptError, match=r"episode 1 \(global 1\): stored return"):
             distil(data, tmp_path / recipe, distil_preset("tiny", recipe), teacher=teacher)
         assert not (tmp_path / recipe).exists()
+
+
+def test_exports_refuse_a_broken_episode_rule(dataset: Path, tmp_path: Path) -> None:
+    from twist_data.export import export_video
+
+    _rewrite(shard_of(dataset), "data/is_first", lambda v: v.__setitem__(12 + 3, True))
+    with pytest.raises(DatasetCorruptError, match=r"export-video refuses dataset .*episode 1 "
+                                                  r"\(global 1\): is_first is set at its step 3"):
+        export_video(dataset, 0, tmp_path / "e.gif")  # episode 0 itself is intact
+    assert not (tmp_path / "e.gif").exists()

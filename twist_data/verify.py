@@ -17,7 +17,7 @@ import numpy as np
 import zarr
 
 from twist_data.errors import DatasetCorruptError, TwistError
-from twist_data.reader import FRAME_PATHS, ShardReader, find_shards, rows_per_file
+from twist_data.reader import FRAME_PATHS, ShardReader, find_shards, open_dataset, rows_per_file
 from twist_data.rules import rule_problems
 from twist_data.schema import (
     EPISODE_COLUMNS,
@@ -230,14 +230,18 @@ def quick_problems(path: str | os.PathLike[str]) -> list[str]:
 
 def require_intact(path: str | os.PathLike[str], needed_by: str) -> None:
     """Raise :class:`~twist_data.errors.DatasetCorruptError` naming the first problem
-    :func:`quick_problems` finds in the dataset at ``path`` (no chunk decoded): what every
-    reader that would otherwise read around the damage (an export of one episode) asks
-    first."""
+    :func:`quick_problems` finds in the dataset at ``path`` (no frame decoded), or the
+    first episode rule it breaks (:mod:`twist_data.rules`, on its low-dimensional arrays):
+    what every reader that would otherwise read around the damage (an export of one
+    episode) asks first."""
     found = quick_problems(path)
     if found:
         more = f" (and {len(found) - 1} more)" if len(found) > 1 else ""
         raise DatasetCorruptError(f"{needed_by} refuses dataset {str(path)!r}: {found[0]}{more};"
                                   f" twist-data verify {path} lists every problem")
+    broken = open_dataset(path).rule_problem(("state", "action"))
+    if broken is not None:
+        raise DatasetCorruptError(f"{needed_by} refuses {broken}")
 
 
 def _check_episodes(shard: ShardReader, loaded: dict[str, np.ndarray],
