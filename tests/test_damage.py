@@ -306,3 +306,11 @@ def test_exports_refuse_a_broken_episode_rule(dataset: Path, tmp_path: Path) -> 
                                                   r"\(global 1\): is_first is set at its step 3"):
         export_video(dataset, 0, tmp_path / "e.gif")  # episode 0 itself is intact
     assert not (tmp_path / "e.gif").exists()
+
+
+def test_verify_names_a_frame_of_zeros_written_under_a_valid_checksum(dataset: Path) -> None:
+    images = zarr.open_array(shard_of(dataset) / "data" / "image", mode="r+")
+    images[14, 1] = 0  # episode 1, its step 2: rewritten through zarr, checksum and all
+    (problem,) = verify_dataset(dataset).problems
+    assert (problem.array, problem.episode) == ("data/image", 1)
+    assert "the frame of its step 2 view 1 is all zeros" in problem.message

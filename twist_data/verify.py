@@ -91,7 +91,7 @@ def _verify_images(shard: ShardReader, problem: Callable[..., None],
             tick(b - a)
             continue
         try:
-            arr[a:b]
+            frames = arr[a:b]
         except Exception:  # zarr and the codecs raise assorted types
             index_problem = _shard_index_problem(arr, shard.path / key, a // per_file,
                                                  per_file * views)
@@ -113,6 +113,13 @@ def _verify_images(shard: ShardReader, problem: Callable[..., None],
                 first, last = steps[0][0], steps[-1][0]
                 problem(f"{len(steps)} step(s) between its steps {first} and {last} cannot be "
                         f"decoded ({steps[0][1]})", key, episode)
+        else:  # no renderer draws a frame of zeros: one is a frame overwritten, checksum and all
+            black = np.flatnonzero(frames.reshape((b - a) * views, -1).max(1) == 0)
+            for i in black[:16].tolist():
+                t, v = a + i // views, i % views
+                episode = int(np.searchsorted(shard.episode_ends, t, side="right"))
+                problem(f"the frame of its step {t - int(shard.episode_starts[episode])} view {v} "
+                        "is all zeros, which no render draws", key, episode)
         tick(b - a)
 
 
