@@ -314,3 +314,14 @@ def test_verify_names_a_frame_of_zeros_written_under_a_valid_checksum(dataset: P
     (problem,) = verify_dataset(dataset).problems
     assert (problem.array, problem.episode) == ("data/image", 1)
     assert "the frame of its step 2 view 1 is all zeros" in problem.message
+
+
+def test_a_frame_of_zeros_in_a_drawn_dataset_is_never_served(dataset: Path) -> None:
+    images = zarr.open_array(shard_of(dataset) / "data" / "image", mode="r+")
+    images[14, 1] = 0  # rewritten through zarr: its checksum is valid
+    data = open_dataset(dataset)
+    out = np.empty((1, 16, 16, 3), np.uint8)
+    with pytest.raises(DatasetCorruptError, match=r"episode 1 \(its step 2\), data/image: .*"
+                                                  r"view 1 cannot be decoded \(it is all zeros"):
+        data.read_frames(np.array([14]), np.array([1]), out)
+    data.read_frames(np.array([14]), np.array([0]), out)  # the other view is served

@@ -36,7 +36,7 @@ def hand_built_episode(spec: DatasetSpec) -> tuple[Episode, list[float], list[fl
     t = len(states)
     k, h, w = spec.views, spec.image_height, spec.image_width
     image = np.zeros((t, k, h, w, 3), np.uint8)
-    image[:, :, 0, 0, 0] = np.arange(t)[:, None]  # frame t is marked with t
+    image[:, :, 0, 0, 0] = np.arange(t)[:, None] + 1  # frame t is marked with t + 1
     ep = Episode(
         image=image,
         state=np.array(states, np.float32)[:, None].repeat(spec.state_dim, 1),
@@ -63,7 +63,7 @@ def test_time_alignment_matches_a_hand_built_episode(tmp_path: Path) -> None:
     np.testing.assert_array_equal(s[1:], s[:-1] + a[1:])
     np.testing.assert_array_equal(r[1:], rewards)
     assert a[0] == 0 and r[0] == 0
-    np.testing.assert_array_equal(b["image"][0, :, 0, 0, 0], np.arange(4))
+    np.testing.assert_array_equal(b["image"][0, :, 0, 0, 0], np.arange(4) + 1)
     assert b["is_first"][0].tolist() == [True, False, False, False]
     assert b["is_last"][0].tolist() == [False, False, False, True]
 

@@ -169,6 +169,10 @@ class FrameChecksumError(ValueError):
     """A frame's bytes do not match the CRC32C stored after them."""
 
 
+class FrameBlackError(ValueError):
+    """A frame of a D drawn by twist is all zeros (:attr:`FrameReader.refuse_black`)."""
+
+
 def frame_decoder(array: zarr.Array) -> tuple[Decoder, bool] | None:
     """The direct decoder of one frame's payload of a sharded frame array, and whether each
     stored frame ends in a CRC32C of its payload; None if the layout is not the known one
@@ -278,6 +282,8 @@ def reason(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     if isinstance(exc, FrameChecksumError) or (text and "checksum do not match" in text[0]):
         return "CRC32C mismatch"
+    if isinstance(exc, FrameBlackError):
+        return text[0]
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
 
@@ -290,11 +296,15 @@ class FrameReader:
     file replaced under a reader is remapped (and rechecked) only by a new reader."""
 
     def __init__(self, array: zarr.Array, array_dir: Path, decoder: Decoder,
-                 steps_per_file: int, checksum: bool = False) -> None:
+                 steps_per_file: int, checksum: bool = False, refuse_black: bool = False
+                 ) -> None:
         self.array = array
         self.array_dir = array_dir
         self.decoder = decoder
         self.checksum = checksum
+        #: Refuse a frame of zeros (checked with the CRC32C, the first time a frame is read):
+        #: twist's renderer draws none, so one in its D was overwritten under a valid checksum.
+        self.refuse_black = refuse_black
         self._checked = bytearray(int(array.shape[0]) * int(array.shape[1]))
         self.views = int(array.shape[1])
         self.steps_per_file = steps_per_file
@@ -327,22 +337,31 @@ class FrameReader:
             j = (t % spf) * k + v
             off, nb = f.offsets[j], f.nbytes[j]
             if off == _EMPTY:
+                if self.refuse_black:  # an inner chunk zarr dropped as all zeros
+                    raise FrameCorruptError(f"image shard file {f.path}: the frame of step {t} "
+                                            f"view {v} cannot be decoded (it is all zeros, "
+                                            "which no render draws)", t)
                 out[row] = 0
                 continue
             if off + nb > f.size:
                 raise FrameCorruptError(f"image shard file {f.path}: the frame of step {t} "
                                         f"view {v} points past the end of the file", t)
             try:
+                first = False
                 if checksum:
                     nb -= 4
                     key = t * k + v
-                    if key >= len(checked) or not checked[key]:
+                    first = key >= len(checked) or not checked[key]
+                    if first:
                         stored = int.from_bytes(f.view[off + nb: off + nb + 4], "little")
                         if nb < 0 or google_crc32c.value(bytes(f.view[off: off + nb])) != stored:
                             raise FrameChecksumError("CRC32C mismatch")
-                        if key < len(checked):
-                            checked[key] = 1
                 decode(f.view[off: off + nb], out[row])
+                if first:
+                    if self.refuse_black and not out[row].any():
+                        raise FrameBlackError("it is all zeros, which no render draws")
+                    if key < len(checked):
+                        checked[key] = 1
             except Exception as exc:  # blosc, zstd and the checksum raise assorted types
                 raise FrameCorruptError(f"image shard file {f.path}: the frame of step {t} "
                                         f"view {v} cannot be decoded ({reason(exc)})", t
