@@ -84,36 +84,31 @@ def check_bank(block: Mapping[str, Any]) -> None:
 
 def reproduce_frames(dataset: MatchingDataset, steps: np.ndarray) -> np.ndarray:
     """Re-render global ``steps`` from their stored physics and DR parameters -> [n, K, H, W, 3]."""
-    spec = dataset.spec
     steps = np.asarray(steps, np.int64)
-    out = np.empty((steps.size, spec.views, *spec.image_shape), np.uint8)
-    physics = dataset.column("physics")[steps]
-    params = {p.name: dataset.column(f"dr/{p.name}")[steps] for p in VIEW_PARAMS}
-    for block in render_blocks(spec):
-        start, stop = (int(v) for v in block["views"])
-        with renderer_for_block(spec.task, block) as renderer:
-            for i in range(steps.size):
-                renderer.render(physics[i], {k: v[i, start:stop] for k, v in params.items()},
-                                out=out[i, start:stop])
-    return out
+    return _redraw(dataset, steps, steps)
 
 
 def reproduce_pairs(dataset: MatchingDataset, steps: np.ndarray) -> np.ndarray:
     """The pair frames (:func:`pair_frames`) of global ``steps``, redrawn from the stored
     physics and DR draws -> [n, K, H, W, 3]: what ``data/pair_image`` holds there."""
-    spec = dataset.spec
     steps = np.asarray(steps, np.int64)
-    out = np.empty((steps.size, spec.views, *spec.image_shape), np.uint8)
     first = dataset.column("is_first")[steps].astype(bool)
-    physics = dataset.column("physics")
-    both = np.stack([physics[np.where(first, steps, steps - 1)], physics[steps]], 1)
-    params = {p.name: dataset.column(f"dr/{p.name}")[steps] for p in VIEW_PARAMS}
+    return _redraw(dataset, np.where(first, steps, steps - 1), steps)
+
+
+def _redraw(dataset: MatchingDataset, instants: np.ndarray, draws: np.ndarray) -> np.ndarray:
+    """The physics of global steps ``instants`` [n], each drawn under the DR parameters of
+    the step ``draws`` [n] with every render block's renderer -> [n, K, H, W, 3]."""
+    spec = dataset.spec
+    out = np.empty((draws.size, spec.views, *spec.image_shape), np.uint8)
+    physics = dataset.column("physics")[instants]
+    params = {p.name: dataset.column(f"dr/{p.name}")[draws] for p in VIEW_PARAMS}
     for block in render_blocks(spec):
         start, stop = (int(v) for v in block["views"])
         with renderer_for_block(spec.task, block) as renderer:
-            for i in range(steps.size):
-                pair_frames(renderer, both[i], 1, {k: v[i, start:stop] for k, v in params.items()},
-                            out[i, start:stop])
+            for i in range(draws.size):
+                renderer.render(physics[i], {k: v[i, start:stop] for k, v in params.items()},
+                                out=out[i, start:stop])
     return out
 
 
@@ -132,29 +127,28 @@ def check_reproduction(dataset: MatchingDataset, n_steps: int, seed: int = 0) ->
         return []
     rng = np.random.default_rng(seed)
     steps = np.sort(rng.choice(dataset.n_steps, min(n_steps, dataset.n_steps), replace=False))
-    rendered = reproduce_frames(dataset, steps)
-    problems = []
+    problems = _differences(dataset, steps, reproduce_frames(dataset, steps), "image",
+                            "re-render")
+    if dataset.has_pairs:
+        problems += _differences(dataset, steps, reproduce_pairs(dataset, steps), PAIR_IMAGE,
+                                 "the redrawn pair frame")
+    return problems
+
+
+def _differences(dataset: MatchingDataset, steps: np.ndarray, redrawn: np.ndarray, key: str,
+                 what: str) -> list[str]:
+    """Every view of ``steps`` whose ``redrawn`` frame [n, K, H, W, 3] differs from the frame
+    array ``key`` stores, in one line each."""
     k = dataset.spec.views
     stored = np.empty((steps.size * k, *dataset.spec.image_shape), np.uint8)
-    dataset.read_frames(np.repeat(steps, k), np.tile(np.arange(k), steps.size), stored)
-    stored = stored.reshape(rendered.shape)
+    dataset.read_frames(np.repeat(steps, k), np.tile(np.arange(k), steps.size), stored, key=key)
+    stored = stored.reshape(redrawn.shape)
+    problems = []
     for i, step in enumerate(steps.tolist()):
         for v in range(k):
-            diff = np.abs(rendered[i, v].astype(np.int16) - stored[i, v]).max()
+            diff = np.abs(redrawn[i, v].astype(np.int16) - stored[i, v]).max()
             if diff:
-                problems.append(f"step {step} view {v}: re-render differs by up to {diff} levels")
-    if dataset.has_pairs:
-        redrawn = reproduce_pairs(dataset, steps)
-        stored = np.empty((steps.size * k, *dataset.spec.image_shape), np.uint8)
-        dataset.read_frames(np.repeat(steps, k), np.tile(np.arange(k), steps.size), stored,
-                            key=PAIR_IMAGE)
-        stored = stored.reshape(redrawn.shape)
-        for i, step in enumerate(steps.tolist()):
-            for v in range(k):
-                diff = np.abs(redrawn[i, v].astype(np.int16) - stored[i, v]).max()
-                if diff:
-                    problems.append(f"step {step} view {v}: the redrawn pair frame differs by "
-                                    f"up to {diff} levels")
+                problems.append(f"step {step} view {v}: {what} differs by up to {diff} levels")
     return problems
 
 
