@@ -221,6 +221,35 @@ def export_minari_cmd(
     out.print(f"wrote {path}")
 
 
+@app.command("export-lerobot")
+def export_lerobot_cmd(
+    dataset: DatasetArg,
+    out_dir: Annotated[Path, typer.Argument(metavar="OUT", help="LeRobot dataset folder to "
+                                                                "create.")],
+    episodes: Annotated[str | None, typer.Option(
+        help="Comma-separated episode indices, negative from the end (default: all); "
+             "exported in D's order.")] = None,
+    views: Annotated[str | None, typer.Option(
+        help="Comma-separated views to export (default: all).")] = None,
+    fps: Annotated[int | None, typer.Option(
+        help="Frames per second (default: from the stored physics' clock).")] = None,
+    overwrite: Annotated[bool, typer.Option(
+        "--overwrite", help="Replace OUT if it holds a LeRobot dataset.")] = False,
+) -> None:
+    """Write D as a LeRobotDataset v3.0 folder that LeRobot's loader opens: each view a
+    lossless video, the privileged state as observation.environment_state, the physics,
+    actions, rewards and flags as Parquet rows, DR draws and provenance beside them (needs
+    the lerobot extra)."""
+    from twist_data.lerobot_export import export_lerobot
+
+    chosen = None if episodes is None else parse_list(episodes, int, "--episodes")
+    shown = None if views is None else parse_list(views, int, "--views")
+    with progress_bar("exporting") as update:
+        path = export_lerobot(dataset, out_dir, episodes=chosen, views=shown, fps=fps,
+                              overwrite=overwrite, on_progress=update)
+    out.print(f"wrote {path}")
+
+
 @app.command()
 def viz(
     dataset: DatasetArg,

@@ -14,7 +14,7 @@ if [ ! -f "$stamp" ] || [ "$ROOT/pyproject.toml" -nt "$stamp" ]; then
   # torch first, pinned: this version is a local CPU wheel here; an unpinned torch
   # would pull a multi-GB CUDA build.
   python -m pip install --quiet --disable-pip-version-check "torch==2.13.0"
-  python -m pip install --quiet --disable-pip-version-check "mujoco==3.17.0" -e "$ROOT[dev,sim,gym,video,minari,torchrl,tensorboard,viz]"
+  python -m pip install --quiet --disable-pip-version-check "mujoco==3.17.0" -e "$ROOT[dev,sim,gym,video,lerobot,minari,torchrl,tensorboard,viz]"
   touch "$stamp"
 fi
 export MUJOCO_GL="${MUJOCO_GL:-egl}"

@@ -105,6 +105,17 @@ def board_events(run: Path) -> tuple[dict[str, list[tuple[int, float]]],
     return scalars, images
 
 
+def reference_python() -> Path:
+    """The Python of the reference environment, where other projects' own readers live
+    (scripts/reference_env.sh), or skip the test saying why it is missing."""
+    venv = Path(os.environ.get("TWIST_REFERENCE_VENV",
+                               Path(__file__).resolve().parents[1] / ".venv-ref"))
+    if not (venv / ".twist-reference").exists():
+        pytest.skip(f"no reference environment at {venv} (bash scripts/reference_env.sh "
+                    "installs LeRobot's loader and rliable there)")
+    return venv / "bin" / "python"
+
+
 def mask_overlap(a: np.ndarray, b: np.ndarray) -> float:
     """Intersection over union of two boolean pixel masks."""
     return float((a & b).sum() / (a | b).sum())

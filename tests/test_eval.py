@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 import torch
 
-from tests.conftest import run_command
+from tests.conftest import reference_python, run_command
 from twist_data.errors import ConfigError
 from twist_models.acting import AgentError, ScriptedAgent, load_agent, reference_agent
 from twist_models.agent import Agent
@@ -362,6 +362,37 @@ def test_performance_profile_by_hand() -> None:
     # At 0.5: 1/3 of the first stratum (0.5 itself is not above) and 1/2 of the second.
     profile = performance_profile(strata, np.array([0.0, 0.5, 1.0]))
     assert profile == pytest.approx([1.0, (1 / 3 + 1 / 2) / 2, 0.0])
+
+
+def test_statistics_equal_rliables(tmp_path) -> None:
+    """The IQM, its stratified bootstrap interval, the probability of improvement and its
+    interval, and the performance profile, against rliable's own (Agarwal et al., 2021) on the
+    same runs: the estimates to rounding, the intervals to the bootstraps' resampling noise."""
+    from twist_models.statistics import performance_profile, probability_of_improvement
+
+    python = reference_python()
+    rng = np.random.default_rng(7)
+    x = [rng.normal(0.6 + 0.1 * t, 0.2, 5) for t in range(4)]  # 4 tasks, 5 runs each
+    y = [rng.normal(0.5 + 0.1 * t, 0.2, 5) for t in range(4)]
+    tau = np.linspace(0, 1.2, 7)
+    reps = 2_000
+    given = tmp_path / "in.json"
+    given.write_text(json.dumps({"x": [a.tolist() for a in x], "y": [b.tolist() for b in y],
+                                 "tau": tau.tolist(), "reps": reps}))
+    script = Path(__file__).with_name("rliable_reference.py")
+    result = subprocess.run([str(python), str(script), str(given), str(tmp_path / "out.json")],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    theirs = json.loads((tmp_path / "out.json").read_text())
+    assert float(iqm(np.concatenate(x))) == pytest.approx(theirs["iqm"], abs=1e-12)
+    interval = stratified_bootstrap(x, resamples=reps)
+    assert interval.estimate == pytest.approx(theirs["iqm"], abs=1e-12)
+    assert [interval.low, interval.high] == pytest.approx(theirs["iqm_ci"], abs=0.02)
+    improvement = probability_of_improvement(x, y, resamples=reps)
+    assert improvement.estimate == pytest.approx(theirs["improvement"], abs=1e-12)
+    assert [improvement.low, improvement.high] == pytest.approx(theirs["improvement_ci"],
+                                                                abs=0.02)
+    assert performance_profile(x, tau) == pytest.approx(theirs["profile"], abs=1e-12)
 
 
 POLICY_MODULE = '''

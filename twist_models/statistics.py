@@ -11,6 +11,11 @@
 scipy's ``trim_mean`` and ``bootstrap`` do the work (``bootstrap`` with several samples and
 ``paired=False`` resamples each one independently: exactly a stratified bootstrap; ``ttest_rel``
 gives the paired interval).
+
+rliable (Agarwal et al.'s library) computes the same estimates and intervals, which a test
+checks against rliable 1.2.0 itself (scripts/reference_env.sh); it is not a dependency, since
+that release pins arch < 8, whose import fails beside pandas 3, and its statsmodels would not
+fit a GPU slot's carry.
 """
 
 from __future__ import annotations
