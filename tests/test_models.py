@@ -13,7 +13,14 @@ import torch
 
 from twist_data.errors import ConfigError
 from twist_models.checkpoint import CheckpointError, CheckpointMismatchError
-from twist_models.config import CNNConfig, WorldModelConfig, from_json, teacher_preset, to_json
+from twist_models.config import (
+    CNNConfig,
+    ReadOutConfig,
+    WorldModelConfig,
+    from_json,
+    teacher_preset,
+    to_json,
+)
 from twist_models.losses import (
     categorical_kl,
     gaussian_nll,
@@ -371,6 +378,29 @@ def test_hidden_state_components_never_reach_the_encoder_but_are_decoded() -> No
     assert decoded.shape[-1] == 5
     torch.testing.assert_close(metrics["recon_loss"], gaussian_nll(decoded, batch["state"]).mean())
     # Round trip through the JSON a checkpoint stores.
+    assert from_json(WorldModelConfig, json.loads(json.dumps(to_json(config)))) == config
+
+
+def test_a_symlog_model_reads_and_fits_the_state_in_symlog_space() -> None:
+    from twist_models.readout import StateReadOut
+
+    config = dataclasses.replace(teacher_preset("tiny", 5, 2).world_model, symlog=True)
+    model = WorldModel(config)
+    batch = _batch()
+    batch["state"] = batch["state"] * 30.0  # speeds of tens
+    squashed = torch.sign(batch["state"]) * torch.log1p(batch["state"].abs())
+    plain = torch.nn.Sequential(*model.encoder)  # the same layers, no symlog before them
+    torch.testing.assert_close(model.embed(batch["state"]), plain(squashed))
+    _, post, metrics = model.loss(batch)
+    decoded = model.decoder(model.rssm.feature(post))
+    torch.testing.assert_close(metrics["recon_loss"], gaussian_nll(decoded, squashed).mean())
+    # A read-out student embeds its reading through the teacher's encoder as the teacher does.
+    readout = StateReadOut(ReadOutConfig(state_dim=5, read=(0, 1, 2, 3, 4),
+                                         encoder=config.state_mlp, symlog=True), features=2)
+    readout.encoder.load_state_dict(model.encoder.state_dict())
+    torch.testing.assert_close(readout.encoder(batch["state"]), model.encoder(batch["state"]))
+    readout.encoder.symlog = False
+    assert not torch.allclose(readout.encoder(batch["state"]), model.encoder(batch["state"]))
     assert from_json(WorldModelConfig, json.loads(json.dumps(to_json(config)))) == config
 
 

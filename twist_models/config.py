@@ -254,6 +254,10 @@ class WorldModelConfig:
     teacher's latent must then infer them from the history of what it reads, as a student
     reading images must; the decoder still reconstructs every component (``state`` models
     only; (): it reads them all, as the paper)."""
+    symlog: bool = False
+    """Read the state through symlog, sign(x) log(1 + |x|), and reconstruct it in that space
+    (DreamerV3's vector inputs): a joint speed of tens then weighs in the model's loss as a
+    position does instead of ~100 times more (False: DreamerV2's raw state)."""
 
     def __post_init__(self) -> None:
         try:
@@ -342,6 +346,9 @@ class ReadOutConfig:
     hidden: tuple[int, ...] = ()
     """State components the teacher never reads (its ``state_hidden``): neither read nor
     derived, handed on as 0, as the teacher's own encoder sees them."""
+    symlog: bool = False
+    """Whether the teacher's encoder reads the state through symlog (its world model's
+    ``symlog``), which the copy embedding the reading must too."""
     moving: tuple[int, ...] = ()
     """Velocities that are the rate of nothing one frame shows (a tracked root's speed): read
     by a head on the CNN's features of the step's frame pair, the step before and the step

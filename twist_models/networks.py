@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from twist_models.config import CNNConfig, MLPConfig
+from twist_models.losses import symlog
 
 
 @contextmanager
@@ -65,11 +66,16 @@ class LayerNormGRUCell(nn.Module):
 
 
 class StateEncoder(MLP):
-    """Privileged state [..., S] -> embedding [..., units]: the MLP's last hidden layer."""
+    """Privileged state [..., S] -> embedding [..., units]: the MLP's last hidden layer, read
+    through :func:`~twist_models.losses.symlog` where ``symlog``."""
 
-    def __init__(self, state_dim: int, config: MLPConfig) -> None:
+    def __init__(self, state_dim: int, config: MLPConfig, symlog: bool = False) -> None:
         super().__init__(state_dim, None, config)
         self.out_dim = config.units
+        self.symlog = symlog
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        return super().forward(symlog(state) if self.symlog else state)
 
 
 class ImageEncoder(nn.Module):

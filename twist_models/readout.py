@@ -208,7 +208,7 @@ class StateReadOut(nn.Module):
         # What the loss multiplies each robust-spread error by (:meth:`weigh_by_teacher`);
         # measured again by every run that trains, so not saved.
         self.register_buffer("loss_weight", torch.ones(len(config.read)), persistent=False)
-        self.encoder = StateEncoder(config.state_dim, config.encoder)
+        self.encoder = StateEncoder(config.state_dim, config.encoder, config.symlog)
         self.out_dim = self.encoder.out_dim
         position = {i: k for k, i in enumerate(config.read)}
         #: Each (cos, sin) pair's slots in the read vector.

@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 from twist_models.config import WorldModelConfig
-from twist_models.losses import gaussian_nll, kl_balance_loss
+from twist_models.losses import gaussian_nll, kl_balance_loss, symlog
 from twist_models.networks import MLP, ImageDecoder, ImageEncoder, StateEncoder, preprocess_image
 from twist_models.rssm import RSSM, State
 
@@ -26,7 +26,7 @@ class WorldModel(nn.Module):
         self.config = config
         c = config
         if c.obs == "state":
-            self.encoder: nn.Module = StateEncoder(c.state_dim, c.state_mlp)
+            self.encoder: nn.Module = StateEncoder(c.state_dim, c.state_mlp, c.symlog)
         else:
             self.encoder = ImageEncoder(c.cnn)
         self.rssm = RSSM(c.rssm, c.action_dim, self.encoder.out_dim)
@@ -76,7 +76,7 @@ class WorldModel(nn.Module):
         kl_loss, kl = kl_balance_loss(post["logits"], prior["logits"], c.rssm.kl_balance,
                                       c.rssm.free_nats)
         if c.decodes_state:
-            recon = gaussian_nll(self.decoder(feature), batch["state"]).mean()
+            recon = gaussian_nll(self.decoder(feature), self.state_target(batch["state"])).mean()
         else:
             recon = gaussian_nll(self.decoder(feature), preprocess_image(obs), 3).mean()
         reward = gaussian_nll(self.reward_head(feature).squeeze(-1), batch["reward"], 0).mean()
@@ -115,9 +115,14 @@ class WorldModel(nn.Module):
         feature = self.rssm.feature(states)[:, 1:]  # [N, H, F], the start left out
         # A rollout is compared with the recording only until the recording's next episode.
         valid = (batch["is_first"][rows, steps].int().cumsum(1) == 0).float()
-        nll = (gaussian_nll(self.decoder(feature), batch["state"][rows, steps])
+        nll = (gaussian_nll(self.decoder(feature), self.state_target(batch["state"][rows, steps]))
                + gaussian_nll(self.reward(feature), batch["reward"][rows, steps], 0))
         return (nll * valid).sum() / valid.sum().clamp_min(1.0)
+
+    def state_target(self, state: torch.Tensor) -> torch.Tensor:
+        """What the decoder reconstructs of ``state`` [..., S]: the state, in symlog space
+        where the config's ``symlog`` asks."""
+        return symlog(state) if self.config.symlog else state
 
     def reward(self, feature: torch.Tensor) -> torch.Tensor:
         """Predicted reward for arriving in the state of ``feature``: [..., F] -> [...]."""

@@ -257,7 +257,7 @@ def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher, mirr
     if pooled:
         log.info("the read-out pools components %s over each episode: D's episodes never "
                  "change them", list(pooled))
-    readout = dataclasses.replace(readout, lean=stage.lean, pooled=pooled)
+    readout = dataclasses.replace(readout, lean=stage.lean, pooled=pooled, symlog=wm.symlog)
     if readout.moving:  # refused before anything is written, naming the command that adds them
         # No lower bar is offered: cheetah's root speed correlates at 0.43 with a change that
         # is not its rate, panda-push's block height at 0.47 with its own.
