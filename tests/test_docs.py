@@ -69,3 +69,44 @@ def test_no_development_history_in_tracked_files() -> None:
             if HISTORY.search(line) or (path.suffix == ".md" and BRACKETED.search(line)):
                 found.append(f"{name}:{number}: {line.strip()[:80]}")
     assert not found, "development history in the project:\n" + "\n".join(found[:20])
+
+
+def _tables():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("results_tables",
+                                                  ROOT / "scripts" / "results_tables.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_results_tables_are_rendered_from_the_records() -> None:
+    tables = _tables()
+    records = tables.load()
+    for path in tables.DOCUMENTS:
+        text = path.read_text()
+        assert tables.TABLE.search(text), f"{path.name} holds no rendered results table"
+        assert tables.rendered(text, records) == text, (
+            f"{path.name}'s results table differs from results/records.json: "
+            "python scripts/results_tables.py renders it")
+    # A figure changed in a record changes the table (the check could fail).
+    changed = [dict(r, mean=r["mean"] + 1.0) if r["id"] == records[0]["id"] else r
+               for r in records]
+    readme = (ROOT / "README.md").read_text()
+    assert tables.rendered(readme, changed) != readme
+    assert f"{records[0]['mean'] + 1.0:.1f}" in tables.readme(changed)
+
+
+def test_every_record_names_what_a_figure_needs(tmp_path: Path) -> None:
+    tables = _tables()
+    for record in tables.load():
+        assert record["source"] in ("ours", "paper"), record["id"]
+        assert isinstance(record["mean"], int | float), record["id"]
+        if record["source"] == "ours":
+            assert record["section"] and record["episodes"], record["id"]
+    copy = tmp_path / "records.json"
+    copy.write_text((ROOT / "results" / "records.json").read_text().replace(
+        '"id": "cartpole-3seeds-readout"', '"id": "cartpole-3seeds-teacher"'))
+    with pytest.raises(SystemExit, match="repeat"):
+        tables.load(copy)
