@@ -30,6 +30,9 @@ def main(
     seed: Annotated[int, typer.Option(help="Run seed.")] = 0,
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
     resume: Annotated[bool, typer.Option("--resume", help="Continue a run in --out.")] = False,
+    time_limit: Annotated[float | None, typer.Option(
+        help="Seconds this call may train: it stops after the update in progress, "
+             "checkpointed (--resume continues), e.g. the wall clock a student took.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a Dreamer (image reconstruction) or State Recon baseline offline on D, ending in
@@ -40,7 +43,7 @@ def main(
     resolve_device(device)  # before the bar: a refusal is then the only line printed
     with progress_bar(quiet, "training", describe) as report:
         summary = train_baseline(dataset, folder, config, resume=resume, device=device,
-                                 on_progress=report)
+                                 on_progress=report, time_limit=time_limit)
     print_json(summary)
 
 

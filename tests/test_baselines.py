@@ -87,6 +87,21 @@ def test_baseline_refuses_to_overwrite_a_run(dataset, tmp_path) -> None:
     assert resumed["updates"] == 4
 
 
+def test_a_time_limit_stops_a_baseline_resumably(dataset, tmp_path) -> None:
+    config = BaselineConfig(model="tiny", steps=10_000, batch_size=2, length=8, imag_starts=4,
+                            holdout_every=4, checkpoint_every=10_000)
+    first = train_baseline(dataset, tmp_path / "run", config, time_limit=0.5)
+    assert first["stopped"] == "time limit" and 0 < first["updates"] < 10_000
+    stored = read_checkpoint(tmp_path / "run" / "latest.pt", kind="dreamer")
+    assert stored.counters["updates"] == first["updates"]  # kept where the limit stopped it
+    more = train_baseline(dataset, tmp_path / "run", config, resume=True, time_limit=0.5)
+    assert more["updates"] > first["updates"]
+    assert Agent.load(more["agent"]).info["updates"] == more["updates"]
+    with pytest.raises(BaselineError, match="positive number of seconds, got 0"):
+        train_baseline(dataset, tmp_path / "other", config, time_limit=0)
+    assert not (tmp_path / "other").exists()
+
+
 def test_baseline_learns_behaviour_with_the_teachers_settings_and_its_own_sizes() -> None:
     preset = ActorCriticConfig(actor=MLPConfig(layers=2, units=32), critic=MLPConfig(2, 32))
     teacher = ActorCriticConfig(discount=0.98, actor_lr=1e-3, critic_head="twohot",

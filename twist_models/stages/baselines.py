@@ -163,9 +163,15 @@ def _set_up(data: MatchingDataset, dataset: Path, out: Path, config: BaselineCon
 
 def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
                    config: BaselineConfig, resume: bool = False, device: str = "cpu",
-                   on_progress: Callable[[Progress], None] | None = None) -> dict[str, Any]:
+                   on_progress: Callable[[Progress], None] | None = None,
+                   time_limit: float | None = None) -> dict[str, Any]:
     """Train baseline ``config.kind`` offline on D and write ``out/agent.pt``; returns the
-    run summary (also ``summary.json``)."""
+    run summary (also ``summary.json``). ``time_limit``: seconds this call may train; past
+    them it stops after the update in progress, checkpointed so that ``resume`` continues
+    (``stopped`` = ``"time limit"``): a baseline given a student's wall clock."""
+    if time_limit is not None and not time_limit > 0:
+        raise BaselineError(f"the time limit must be a positive number of seconds, got "
+                            f"{time_limit}")
     resolve_device(device)
     dataset, out = Path(dataset), Path(out)
     if not dataset.exists():
@@ -188,28 +194,38 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
         model, windows = _set_up(data, dataset, out, config, dreamer_config, resume, device)
     latest = RunFolder(out, "baseline", BaselineError, "a baseline run").latest
     board = TensorBoardLog(Path(out))
+    start = time.perf_counter()
+    deadline = None if time_limit is None else start + time_limit
     try:
         _train(model, windows, config, dreamer_config, latest, Path(out), board, device,
-               on_progress)
+               on_progress, deadline)
     finally:
         board.close()
+    seconds = time.perf_counter() - start
     agent = image_agent(model, {**spec.image_agent_info(), "dataset": str(dataset),
                                 "baseline": config.kind, "updates": int(model.step)})
     path = agent.save(out / "agent.pt")
     summary = {"kind": config.kind, "updates": int(model.step), "agent": str(path),
-               "out": str(out)}
+               "out": str(out), "seconds": round(seconds, 1),
+               "stopped": "done" if int(model.step) >= config.steps else "time limit"}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 
 def _train(model: Dreamer, windows: Iterator[dict[str, torch.Tensor]], config: BaselineConfig,
            dreamer_config: DreamerConfig, latest: Path, out: Path, board: TensorBoardLog, device: str,
-           on_progress: Callable[[Progress], None] | None) -> None:
-    """Updates until ``config.steps``: a metrics row (and TensorBoard scalars) every
-    ``log_every``, a checkpoint every ``checkpoint_every``."""
+           on_progress: Callable[[Progress], None] | None, deadline: float | None = None
+           ) -> None:
+    """Updates until ``config.steps`` or the ``deadline`` (a ``perf_counter`` time): a metrics
+    row (and TensorBoard scalars) every ``log_every``, a checkpoint every
+    ``checkpoint_every`` and where the deadline stops it."""
     sums: dict[str, float] = {}
     done, tick = 0, time.perf_counter()
     while int(model.step) < config.steps:
+        if deadline is not None and time.perf_counter() >= deadline:
+            save_checkpoint(latest, "dreamer", model, dreamer_config, model.optimisers(),
+                            {"updates": int(model.step)})
+            return
         batch = {k: v.to(device) for k, v in next(windows).items() if k in KEYS}
         for key, value in model.train_step(batch).items():
             sums[key] = sums.get(key, 0.0) + value
