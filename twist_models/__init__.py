@@ -1,4 +1,3 @@
-"""twist_models: world models (RSSM, encoders, teacher, student, losses, actor-critic, checkpoints).
-
-Filled in by the world-models work; the package exists so the distribution's layout is final.
-"""
+"""twist_models: the building blocks of the world models (RSSM, encoders, teacher, student,
+read-out, losses, actor-critic, checkpoints) and, in ``stages``, the pipeline that assembles
+them."""
