@@ -18,6 +18,7 @@ from twist_models.config import (
     ReadOutConfig,
     WorldModelConfig,
     from_json,
+    student_preset,
     teacher_preset,
     to_json,
 )
@@ -402,6 +403,18 @@ def test_a_symlog_model_reads_and_fits_the_state_in_symlog_space() -> None:
     readout.encoder.symlog = False
     assert not torch.allclose(readout.encoder(batch["state"]), model.encoder(batch["state"]))
     assert from_json(WorldModelConfig, json.loads(json.dumps(to_json(config)))) == config
+    # A read-out student whose copy would read the raw state is refused its teacher's filter.
+    from twist_models.student import Student, copy_teacher_filter
+
+    teacher = dataclasses.replace(teacher_preset("tiny", 5, 2), world_model=config)
+    plain = ReadOutConfig(state_dim=5, read=(0, 1, 2, 3, 4), encoder=config.state_mlp)
+    student = Student(student_preset("tiny", teacher, readout=plain))
+    with pytest.raises(ConfigError, match=r"symlog=False.*symlog=True"):
+        copy_teacher_filter(student, model)
+    copy_teacher_filter(Student(student_preset(
+        "tiny", teacher, readout=dataclasses.replace(plain, symlog=True))), model)
+    with pytest.raises(ConfigError, match="symlog reads and reconstructs a state"):
+        dataclasses.replace(config, obs="image", recon="obs")
 
 
 @pytest.mark.parametrize(("settings", "message"), [

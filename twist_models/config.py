@@ -274,6 +274,9 @@ class WorldModelConfig:
         if self.state_noise and self.obs != "state":
             raise ConfigError(f"state_noise perturbs what a state encoder reads, got "
                               f"state_noise={self.state_noise} with obs={self.obs!r}")
+        if self.symlog and not self.decodes_state:
+            raise ConfigError(f"symlog reads and reconstructs a state, got symlog=True with "
+                              f"obs={self.obs!r} and recon={self.recon!r}")
         if self.state_hidden and self.obs != "state":
             raise ConfigError(f"state_hidden hides what a state encoder reads, got "
                               f"state_hidden={list(self.state_hidden)} with obs={self.obs!r}")

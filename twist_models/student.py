@@ -114,6 +114,10 @@ def copy_teacher_filter(student: Student, teacher: nn.Module) -> None:
     if student.rssm.config != teacher.rssm.config:
         raise ConfigError(f"the student's RSSM sizes {student.rssm.config} differ from the "
                           f"teacher's {teacher.rssm.config}; its filter cannot be copied")
+    reads, fits = student.perception.readout.encoder.symlog, teacher.encoder.symlog
+    if reads != fits:
+        raise ConfigError(f"the read-out embeds its reading with symlog={reads}, but the "
+                          f"teacher's encoder reads the state with symlog={fits}")
     student.perception.readout.encoder.load_state_dict(teacher.encoder.state_dict())
     student.rssm.load_state_dict(teacher.rssm.state_dict())
 
