@@ -12,8 +12,7 @@
 # from which `twist-data render --reproduce` rebuilds D on another machine).
 #
 # Environment (defaults in brackets):
-#   FRAMES, LEARN   collection frames and the frames the teacher learns for [500000, 450000];
-#                   raising them on a later call extends an unfrozen collection
+#   FRAMES, LEARN   collection frames and the frames the teacher learns for [500000, 450000]
 #   PRESET, COMPILE model sizes and schedule [quick], the compiled update [on]
 #   DR              the collection's DR preset [train-wide]
 #   TEACHER_SET     extra collection settings, e.g. "teacher.world_model.symlog=true"
@@ -28,19 +27,22 @@ SEED=${3:-0}
 PRESET=${PRESET:-quick}
 EPISODES=${EPISODES:-30}
 D=$OUT/dataset
-TEACHER=$D/collect/collect-000/best.pt
+TEACHER=$D/collect/collect-000/teacher.pt
 mkdir -p "$OUT"
 log() { echo "$(date -u +%H:%M:%S) $*"; }
 stop_after() { if [ "${STOP_AFTER:-}" = "$1" ]; then log "stopped after $1"; exit 0; fi; }
-settings() { local out=(); for kv in $1; do out+=(--set "$kv"); done; echo "${out[@]}"; }
-done_or() { [ -f "$OUT/$1.done" ] || { log "$1"; return 1; }; }
+# "--set K=V" for each whitespace-separated K=V of $1, into the array named by $2.
+settings() { local kv; local -n into=$2; into=(); read -ra kvs <<<"$1"
+  for kv in "${kvs[@]}"; do into+=(--set "$kv"); done; }
+done_or() { if [ -f "$OUT/$1.done" ]; then stop_after "$1"; return 0; fi; log "$1"; return 1; }
 finish() { touch "$OUT/$1.done"; stop_after "$1"; }
+settings "${TEACHER_SET:-}" teacher_set
+settings "${DISTIL_SET:-}" distil_set
 
-# shellcheck disable=SC2046
 done_or collect || {
   twist-collect --task "$TASK" --preset "$PRESET" --out "$D" --frames "${FRAMES:-500000}" \
     --seed "$SEED" --dr "${DR:-train-wide}" --set learn_frames="${LEARN:-450000}" \
-    --set compile="${COMPILE:-on}" $(settings "${TEACHER_SET:-}") --quiet --resume
+    --set compile="${COMPILE:-on}" ${teacher_set[@]+"${teacher_set[@]}"} --quiet --resume
   finish collect; }
 done_or verify || { twist-data verify "$D" --rerender 20 | tee "$OUT/verify.txt"; finish verify; }
 
@@ -53,10 +55,9 @@ if [ "${PAIRS:-1}" = 1 ]; then
     finish pairs; }
 fi
 
-# shellcheck disable=SC2046
 done_or student || {
   twist-distil --dataset "$SOURCE" --out "$OUT/ro" --preset "$PRESET" --recipe readout \
-    --teacher "$TEACHER" $(settings "${DISTIL_SET:-}") --quiet --resume
+    --teacher "$TEACHER" ${distil_set[@]+"${distil_set[@]}"} --quiet --resume
   finish student; }
 agents=(--agent "teacher=$TEACHER" --agent "student=$OUT/ro/agent.pt")
 done_or eval-student || {
@@ -70,8 +71,8 @@ done_or paper || {
   finish paper; }
 done_or dreamer || {
   # As long as the read-out trained: the same wall clock, this machine's.
-  seconds=$(python -c "import json,sys; print(int(json.load(open(sys.argv[1]))['seconds']))" \
-    "$OUT/ro/summary.json" 2>/dev/null || echo 1800)
+  seconds=$(python -c "import json, math, sys
+print(max(1, math.ceil(json.load(open(sys.argv[1]))['seconds'])))" "$OUT/ro/summary.json")
   twist-baseline --dataset "$D" --kind dreamer --preset "$PRESET" --steps 1000000 --time-limit "$seconds" \
     --out "$OUT/dreamer" --quiet --resume
   finish dreamer; }

@@ -37,9 +37,15 @@ def load(path: Path = RECORDS) -> list[dict[str, Any]]:
     ids = [r["id"] for r in records]
     if len(set(ids)) != len(ids):
         raise SystemExit(f"{path}: record ids repeat: {sorted({i for i in ids if ids.count(i) > 1})}")
+    cells: dict[tuple[str, str, str], str] = {}
     for record in records:
         if record["task"] not in TASKS:
             raise SystemExit(f"{path}: record {record['id']} names unknown task {record['task']!r}")
+        cell = (record["task"], record["setting"], record["agent"])
+        if cell in cells:
+            raise SystemExit(f"{path}: records {cells[cell]} and {record['id']} fill one cell, "
+                             f"{cell}")
+        cells[cell] = record["id"]
     return records
 
 
@@ -96,10 +102,8 @@ def overview(records: list[dict[str, Any]]) -> str:
         student, share = figure(readout), ratio(readout)
         if bold:
             student, share = f"**{student}**", f"**{share}**"
-        label = setting if task in setting else f"{task}, {setting}"
-        paper = cells.get("teacher", {}).get("source") == "paper" or any(
-            r["source"] == "paper" for r in cells.values())
-        lines.append(f"| {label} | {figure(cells.get('teacher'))} | {student} | {share} | "
+        paper = any(r["source"] == "paper" for r in cells.values())
+        lines.append(f"| {task}, {setting} | {figure(cells.get('teacher'))} | {student} | {share} | "
                      f"{figure(cells.get('paper-recipe'), paper)} | "
                      f"{figure(cells.get('dreamer-dr'))} | {figure(cells.get('zero'))} |")
     return "\n".join(lines) + "\n"

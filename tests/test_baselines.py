@@ -94,7 +94,11 @@ def test_a_time_limit_stops_a_baseline_resumably(dataset, tmp_path) -> None:
     assert first["stopped"] == "time limit" and 0 < first["updates"] < 10_000
     stored = read_checkpoint(tmp_path / "run" / "latest.pt", kind="dreamer")
     assert stored.counters["updates"] == first["updates"]  # kept where the limit stopped it
-    more = train_baseline(dataset, tmp_path / "run", config, resume=True, time_limit=0.5)
+    # The limit is the run's: a resumed call with the same limit has no time left.
+    again = train_baseline(dataset, tmp_path / "run", config, resume=True, time_limit=0.5)
+    assert again["updates"] == first["updates"] and again["stopped"] == "time limit"
+    assert again["seconds"] >= first["seconds"] >= 0.5
+    more = train_baseline(dataset, tmp_path / "run", config, resume=True, time_limit=2.0)
     assert more["updates"] > first["updates"]
     assert Agent.load(more["agent"]).info["updates"] == more["updates"]
     with pytest.raises(BaselineError, match="positive number of seconds, got 0"):

@@ -2,6 +2,7 @@
 product rather than about how it was built."""
 
 import functools
+import json
 import re
 import subprocess
 from pathlib import Path
@@ -109,4 +110,8 @@ def test_every_record_names_what_a_figure_needs(tmp_path: Path) -> None:
     copy.write_text((ROOT / "results" / "records.json").read_text().replace(
         '"id": "cartpole-3seeds-readout"', '"id": "cartpole-3seeds-teacher"'))
     with pytest.raises(SystemExit, match="repeat"):
+        tables.load(copy)
+    twice = [r for r in tables.load() if r["id"] == "cartpole-3seeds-readout"]
+    copy.write_text(json.dumps([*tables.load(), dict(twice[0], id="another")]))
+    with pytest.raises(SystemExit, match="fill one cell"):
         tables.load(copy)

@@ -29,7 +29,7 @@ pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
 
 ROOT = Path(__file__).resolve().parents[1]
-SYNTH = SynthConfig(episodes=5, steps=14, views=2, image_size=16, shards=2, length_jitter=4, seed=4)
+SYNTH = SynthConfig(episodes=11, steps=14, views=2, image_size=16, shards=2, length_jitter=4, seed=4)
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +95,7 @@ def test_rows_and_frames_are_ds_steps_in_lerobots_convention(synth: Path, export
         assert (row["episode_index"], row["length"]) == (i, n)
         assert (row["dataset_from_index"], row["dataset_to_index"]) == (start, start + n)
         assert row["twist/episode"] == i and row["twist/seed"] == data.episode_info(i).seed
-        assert row["twist/heldout"] == (i % 10 == 9)
+        assert row["twist/heldout"] == (i == 9)  # every 10th episode, as the distiller splits
         for k in range(data.spec.views):
             when, frames = times[k]
             begin = row[f"videos/{view_key(k)}/from_timestamp"]
@@ -164,9 +164,9 @@ def test_bad_input_writes_nothing(case: str, synth: Path, exported: Path, tmp_pa
     elif case == "view":
         kwargs["views"] = [2]
     elif case == "episode":
-        kwargs["episodes"] = [5]
+        kwargs["episodes"] = [11]
     elif case == "twice":
-        kwargs["episodes"] = [1, -4]
+        kwargs["episodes"] = [1, -10]
     elif case == "clock":
         kwargs = {}
     else:
@@ -177,12 +177,33 @@ def test_bad_input_writes_nothing(case: str, synth: Path, exported: Path, tmp_pa
         export_lerobot(source, out, **kwargs)
     message = str(raised.value)
     expected = {"not-empty": "--overwrite", "not-lerobot": "not a LeRobot dataset",
-                "stripped": "--reproduce", "view": "view 2", "episode": "episode 5",
+                "stripped": "--reproduce", "view": "view 2", "episode": "episode 11",
                 "twice": "twice", "clock": "--fps", "extra": "twist[lerobot]"}[case]
     assert expected in message and "\n" not in message
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # no staging folder left
     if out.exists():
         assert [p.name for p in out.iterdir()] == ["keep.txt"]
+
+
+@pytest.mark.parametrize("fails", ["videos", "parquet"])
+def test_a_failure_while_writing_leaves_the_former_export(fails: str, synth: Path, tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    from twist_data import lerobot_export
+
+    out = export_lerobot(synth, tmp_path / "e", fps=25, episodes=[0])
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    if fails == "videos":
+        monkeypatch.setattr(lerobot_export._Videos, "write", broken)
+    else:
+        monkeypatch.setattr(pq, "write_table", broken)
+    with pytest.raises(LeRobotExportError, match=r"cannot write.*No space left on device"):
+        export_lerobot(synth, out, fps=25, episodes=[1, 2], overwrite=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["e"]  # no staging left beside it
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
 
 
 def test_overwrite_replaces_an_export(synth: Path, exported: Path, tmp_path: Path) -> None:

@@ -13,6 +13,7 @@ losslessly (H.264 over RGB, constant quantiser 0): they decode to D's bytes.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -279,6 +280,12 @@ class _Videos:
             container.close()
         return info
 
+    def abort(self) -> None:
+        """Close every file as it is (the export failed; its folder is removed)."""
+        for container in self.containers.values():
+            with contextlib.suppress(Exception):  # a half-written file is deleted just after
+                container.close()
+
 
 def _table(pa: Any, columns: dict[str, np.ndarray], feats: dict[str, dict[str, Any]]) -> Any:
     """The Parquet table of the non-video ``feats`` (in their order): a feature of shape [1]
@@ -308,7 +315,8 @@ def _replaceable(out: Path, overwrite: bool) -> None:
         if not (out / "meta" / "info.json").is_file():
             raise LeRobotExportError(f"output {str(out)!r} is not a LeRobot dataset (no "
                                      "meta/info.json), so --overwrite does not replace it")
-    require_writable(out, "output")
+    # The export is built beside ``out`` and renamed into place: its folder must take it.
+    require_writable(out.parent if out.exists() else out, "output")
 
 
 def export_lerobot(dataset_path: str | os.PathLike[str], out: str | os.PathLike[str],
@@ -331,9 +339,16 @@ def export_lerobot(dataset_path: str | os.PathLike[str], out: str | os.PathLike[
     chosen = _chosen(episodes, data.n_episodes, "episode")
     shown = _chosen(views, data.spec.views, "view")
     short = [i for i in chosen if data.episode_lengths[i] < 2]
-    if short:
+    if short and episodes is not None:
         raise LeRobotExportError(f"episode {short[0]} has one step, from which no action was "
                                  "taken: it gives LeRobot no frame")
+    if short:
+        log.info("leaving out %d one-step episodes (no action was taken in them): %s",
+                 len(short), short)
+        chosen = [i for i in chosen if i not in set(short)]
+        if not chosen:
+            raise LeRobotExportError(f"every episode of {data.path} has one step: there is no "
+                                     "frame to export")
     rate = step_rate(data, fps)
     spec = data.spec
     feats = features(data, shown)
@@ -341,8 +356,9 @@ def export_lerobot(dataset_path: str | os.PathLike[str], out: str | os.PathLike[
     table = data.episodes()
     staging = out.parent / f".{out.name}.lerobot-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
+    videos = None
     try:
+        staging.mkdir(parents=True)
         videos = _Videos(av, staging, shown, rate, spec.image_shape[:2])
         parts: dict[str, list[np.ndarray]] = {}
         per_episode: list[dict[str, Any]] = []
@@ -392,7 +408,7 @@ def export_lerobot(dataset_path: str | os.PathLike[str], out: str | os.PathLike[
             start += n
             if on_progress is not None:
                 on_progress(done, len(chosen))
-        video_info = videos.close()
+        video_info, videos = videos.close(), None
         for k in shown:
             feats[view_key(k)]["info"] = dict(video_info)
         columns = {name: np.concatenate(values) for name, values in parts.items()}
@@ -422,15 +438,33 @@ def export_lerobot(dataset_path: str | os.PathLike[str], out: str | os.PathLike[
             "frames": "frame t: D's observation t with the action, reward and flags of step t + 1",
             "video": {"codec": VIDEO_CODEC, "options": VIDEO_OPTIONS},
             "spec": spec.to_json()})
-        if out.exists():
-            shutil.rmtree(out)
-        os.rename(staging, out)
-    except BaseException:
+        _into_place(staging, out)
+    except BaseException as exc:
+        if videos is not None:
+            videos.abort()
         shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise LeRobotExportError(f"cannot write the LeRobot dataset {str(out)!r}: "
+                                     f"{exc.strerror or exc}") from None
         raise
     log.info("wrote %d episodes (%d frames, %d views) of %s as a LeRobot dataset in %s",
              len(chosen), start, len(shown), data.path, out)
     return out
+
+
+def _into_place(staging: Path, out: Path) -> None:
+    """Rename the built ``staging`` to ``out``; an export ``out`` held before is set aside
+    first and removed only once the new one is in place (put back if that fails)."""
+    aside = out.parent / f".{out.name}.replaced-{os.getpid()}"
+    if out.exists():
+        os.rename(out, aside)
+    try:
+        os.rename(staging, out)
+    except BaseException:
+        if aside.exists():
+            os.rename(aside, out)
+        raise
+    shutil.rmtree(aside, ignore_errors=True)
 
 
 def _write_json(path: Path, value: Any) -> None:

@@ -135,16 +135,18 @@ def behaviour_config(extra: dict[str, Any], preset: ActorCriticConfig) -> ActorC
 
 def _set_up(data: MatchingDataset, dataset: Path, out: Path, config: BaselineConfig,
             dreamer_config: DreamerConfig, resume: bool, device: str
-            ) -> tuple[Dreamer, Iterator[dict[str, torch.Tensor]]]:
-    """The run folder, the model (resumed from ``latest.pt`` if there is one) and the
-    training windows."""
+            ) -> tuple[Dreamer, Iterator[dict[str, torch.Tensor]], float]:
+    """The run folder, the model (resumed from ``latest.pt`` if there is one), the training
+    windows and the seconds the run has trained so far."""
     folder = RunFolder(out, "baseline", BaselineError, "a baseline run")
     folder.open(config, resume, ("steps", "compile"), "--steps and --set compile")
     torch.manual_seed(config.seed)
     model = Dreamer(dreamer_config)
+    seconds = 0.0
     if folder.latest.exists():
         checkpoint = read_checkpoint(folder.latest, kind="dreamer")
         restore(checkpoint, model, dreamer_config, model.optimisers())
+        seconds = checkpoint.counters.get("train_ms", 0) / 1000
     model.to_device(device)
     model.compile_update(compile_mode(config.compile, torch.device(device)))
     folder.write_config(config, dreamer=dreamer_config, dataset=Path(dataset))
@@ -158,7 +160,7 @@ def _set_up(data: MatchingDataset, dataset: Path, out: Path, config: BaselineCon
         raise BaselineError(f"no training windows: {exc}") from None
     # The first batch reads D's arrays whole: damage there is refused with the set-up undone.
     first = next(windows)
-    return model, itertools.chain([first], windows)
+    return model, itertools.chain([first], windows), seconds
 
 
 def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
@@ -166,9 +168,10 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
                    on_progress: Callable[[Progress], None] | None = None,
                    time_limit: float | None = None) -> dict[str, Any]:
     """Train baseline ``config.kind`` offline on D and write ``out/agent.pt``; returns the
-    run summary (also ``summary.json``). ``time_limit``: seconds this call may train; past
-    them it stops after the update in progress, checkpointed so that ``resume`` continues
-    (``stopped`` = ``"time limit"``): a baseline given a student's wall clock."""
+    run summary (also ``summary.json``). ``time_limit``: seconds the run may train in all,
+    resumed calls included; past them it stops after the update in progress, checkpointed so
+    that ``resume`` continues (``stopped`` = ``"time limit"``): a baseline given a student's
+    wall clock."""
     if time_limit is not None and not time_limit > 0:
         raise BaselineError(f"the time limit must be a positive number of seconds, got "
                             f"{time_limit}")
@@ -191,17 +194,18 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
                    f"a batch of {config.batch_size} windows of {config.length} steps (its "
                    "images as float32 alone)")
     with removed_on_failure(out):  # a refused set-up leaves no config or log behind
-        model, windows = _set_up(data, dataset, out, config, dreamer_config, resume, device)
+        model, windows, before = _set_up(data, dataset, out, config, dreamer_config, resume,
+                                         device)
     latest = RunFolder(out, "baseline", BaselineError, "a baseline run").latest
     board = TensorBoardLog(Path(out))
     start = time.perf_counter()
-    deadline = None if time_limit is None else start + time_limit
+    deadline = None if time_limit is None else start + time_limit - before
     try:
         _train(model, windows, config, dreamer_config, latest, Path(out), board, device,
-               on_progress, deadline)
+               on_progress, deadline, start - before)
     finally:
         board.close()
-    seconds = time.perf_counter() - start
+    seconds = before + time.perf_counter() - start
     agent = image_agent(model, {**spec.image_agent_info(), "dataset": str(dataset),
                                 "baseline": config.kind, "updates": int(model.step)})
     path = agent.save(out / "agent.pt")
@@ -214,17 +218,23 @@ def train_baseline(dataset: str | os.PathLike[str], out: str | os.PathLike[str],
 
 def _train(model: Dreamer, windows: Iterator[dict[str, torch.Tensor]], config: BaselineConfig,
            dreamer_config: DreamerConfig, latest: Path, out: Path, board: TensorBoardLog, device: str,
-           on_progress: Callable[[Progress], None] | None, deadline: float | None = None
-           ) -> None:
+           on_progress: Callable[[Progress], None] | None, deadline: float | None = None,
+           origin: float = 0.0) -> None:
     """Updates until ``config.steps`` or the ``deadline`` (a ``perf_counter`` time): a metrics
     row (and TensorBoard scalars) every ``log_every``, a checkpoint every
-    ``checkpoint_every`` and where the deadline stops it."""
+    ``checkpoint_every`` and where the deadline stops it, recording the run's training
+    seconds (``perf_counter`` minus ``origin``) for a resumed call's limit."""
     sums: dict[str, float] = {}
     done, tick = 0, time.perf_counter()
+
+    def checkpoint() -> None:
+        save_checkpoint(latest, "dreamer", model, dreamer_config, model.optimisers(),
+                        {"updates": int(model.step),
+                         "train_ms": round((time.perf_counter() - origin) * 1000)})
+
     while int(model.step) < config.steps:
         if deadline is not None and time.perf_counter() >= deadline:
-            save_checkpoint(latest, "dreamer", model, dreamer_config, model.optimisers(),
-                            {"updates": int(model.step)})
+            checkpoint()
             return
         batch = {k: v.to(device) for k, v in next(windows).items() if k in KEYS}
         for key, value in model.train_step(batch).items():
@@ -244,8 +254,7 @@ def _train(model: Dreamer, windows: Iterator[dict[str, torch.Tensor]], config: B
                                      row["model_loss"]))
             sums, done, tick = {}, 0, time.perf_counter()
         if updates % config.checkpoint_every == 0 or updates == config.steps:
-            save_checkpoint(latest, "dreamer", model, dreamer_config, model.optimisers(),
-                            {"updates": updates})
+            checkpoint()
 
 
 def image_agent(model: Dreamer, info: dict[str, Any]) -> Agent:
