@@ -399,7 +399,7 @@ RECIPES: dict[str, dict[str, Any]] = {
 }
 #: Updates of each recipe's single-frame stage at each size preset: one update of 64 frames
 #: costs ~1/20 of a ``quick`` update on windows, and the read-out student's return still rose
-#: from 15,000 to 45,000 (docs/findings.md, "Do more first-stage updates help?").
+#: from 15,000 to 45,000 (research/findings-full.md, "Do more first-stage updates help?").
 FRAME_STEPS = {"dense": {"paper": 20_000, "quick": 10_000, "tiny": 4},
                "readout": {"paper": 90_000, "quick": 45_000, "tiny": 4}}
 #: Updates on windows (Eq. 3/4 through the teacher's fixed filter) after the read-out stage:

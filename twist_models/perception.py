@@ -142,7 +142,7 @@ class StateReading(Perception):
         """The reading of uint8 images [..., H, W, 3] (whose CNN ``features`` [..., F] may be
         at hand) -> [..., R]: what the filter is handed before the velocities are derived."""
         # A background never seen biases one reading and its mirror image's differently: the
-        # mean of both errs less (docs/findings.md, "Does reading the mirror image too hold
+        # mean of both errs less (research/findings-full.md, "Does reading the mirror image too hold
         # the lost scenes?").
         mirrored = self.encoder(image.flip(-2)) if self.readout.config.mirror else None
         return self.readout.positions(self.encoder(image) if features is None else features,

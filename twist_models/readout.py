@@ -366,7 +366,7 @@ class StateReadOut(nn.Module):
         # too small than when too large. So the reading is handed on
         # `lean` times further from D's median angle: d + (lean - 1) sin d has slope `lean`
         # at d = 0, is monotone for lean < 2 and leaves a fallen pole (d = pi) where it is
-        # (docs/findings.md, "Does reading the lean larger hold the lost scenes?"). An
+        # (research/findings-full.md, "Does reading the lean larger hold the lost scenes?"). An
         # angle the mirror turns over leans about 0, so a mirror-symmetric reading stays so.
         mirrored = bool(self.config.mirror) and self.config.mirror[s] < 0
         centre = self.mean.new_zeros(()) if mirrored else torch.atan2(self.mean[s], self.mean[c])

@@ -29,8 +29,8 @@ from twist_models.rssm import State
 #: The final teacher's file name in a collector's run folder (what ``twist-distil`` finds).
 FINAL_TEACHER = "teacher.pt"
 #: The teacher at its best evaluation so far, beside the final one: a short CPU run's
-#: evaluations swing by hundreds between neighbouring points (docs/findings.md,
-#: "Teacher learning"), so the last teacher is not always the one to distil from.
+#: evaluations swing by hundreds between neighbouring points (docs/findings.md, "The teacher
+#: on states"), so the last teacher is not always the one to distil from.
 BEST_TEACHER = "best.pt"
 
 
