@@ -101,7 +101,8 @@ class WorldModel(nn.Module):
 
         Why: the posterior sees every next state, so the one-step losses barely ask the
         deterministic path to carry an action's effect, and imagination (which is open loop)
-        then under-rates how much actions matter (research/findings-full.md, "Which settings learn fastest on 2 cores?").
+        then under-rates how much actions matter (research/findings-full.md, "Which settings
+        learn fastest on 2 cores?").
         Fitting the open-loop predictions themselves asks for exactly what imagination uses."""
         c = self.config
         batch_size, length = batch["is_first"].shape
