@@ -55,6 +55,15 @@ def test_front_page_is_short() -> None:
     assert len((ROOT / "README.md").read_text().splitlines()) <= 200
 
 
+@pytest.mark.parametrize(("page", "most"), [("docs/results.md", 250), ("docs/findings.md", 200)])
+def test_the_pages_a_user_reads_stay_short(page: str, most: int) -> None:
+    """How a figure was found belongs in research/; these pages keep the figures and commands."""
+    lines = (ROOT / page).read_text().splitlines()
+    assert len(lines) <= most, f"{page} has {len(lines)} lines; move narrative to research/"
+    long = [i + 1 for i, line in enumerate(lines) if len(line) > 200 and not line.startswith("|")]
+    assert not long, f"{page}: lines {long} are over 200 characters"
+
+
 def test_no_development_history_in_tracked_files() -> None:
     listed = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True)
     if listed.returncode != 0:
