@@ -15,6 +15,8 @@
 #   FRAMES, LEARN   collection frames and the frames the teacher learns for [500000, 450000]
 #   PRESET, COMPILE model sizes and schedule [quick], the compiled update [on]
 #   DR              the collection's DR preset [train-wide]
+#   EVAL_EVERY      frames between the teacher's evaluations [5000]: at `quick`'s 2,000 they
+#                   take 11% of a long collection's wall time (benchmarks/teacher_profile.py)
 #   TEACHER_SET     extra collection settings, e.g. "teacher.world_model.symlog=true"
 #   DISTIL_SET      extra read-out settings, e.g. "readout_stage.units=teacher"
 #   PAIRS           1: distil from D re-rendered with frame pairs [1]
@@ -42,7 +44,8 @@ settings "${DISTIL_SET:-}" distil_set
 done_or collect || {
   twist-collect --task "$TASK" --preset "$PRESET" --out "$D" --frames "${FRAMES:-500000}" \
     --seed "$SEED" --dr "${DR:-train-wide}" --set learn_frames="${LEARN:-450000}" \
-    --set compile="${COMPILE:-on}" ${teacher_set[@]+"${teacher_set[@]}"} --quiet --resume
+    --set compile="${COMPILE:-on}" --set eval_every="${EVAL_EVERY:-5000}" \
+    ${teacher_set[@]+"${teacher_set[@]}"} --quiet --resume
   finish collect; }
 done_or verify || { twist-data verify "$D" --rerender 20 | tee "$OUT/verify.txt"; finish verify; }
 
