@@ -723,6 +723,23 @@ def test_auto_mirroring_follows_the_tasks_declaration(inputs, tmp_path: Path,
     assert Agent.load(undeclared.agent).config.student.readout.mirror == ()
 
 
+def test_a_symlog_teachers_readout_student_embeds_its_reading_as_the_teacher_does(
+        inputs, tmp_path: Path) -> None:
+    dataset, _, _, _ = inputs
+    config = teacher_preset("tiny", 5, 1)
+    torch.manual_seed(4)
+    teacher = Teacher(dataclasses.replace(config, world_model=dataclasses.replace(
+        config.world_model, symlog=True))).eval()
+    path = save_teacher(tmp_path / "teacher.pt", teacher)
+    summary = distil(dataset, tmp_path / "run", distil_preset("tiny", "readout"), teacher=path)
+    agent = Agent.load(summary.agent)
+    assert agent.config.student.readout.symlog
+    state = torch.randn(7, 5) * 30.0  # speeds of tens, where symlog and the raw state differ
+    with torch.no_grad():
+        torch.testing.assert_close(agent.student.perception.embed_state(state),
+                                   teacher.world_model.encoder(state))
+
+
 def test_a_resume_accepts_gains_measured_again_to_the_last_digits_only(
         inputs, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # The gains are measured on D again at every start; with another BLAS thread count their
