@@ -31,8 +31,8 @@ def main(
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
     resume: Annotated[bool, typer.Option("--resume", help="Continue a run in --out.")] = False,
     time_limit: Annotated[float | None, typer.Option(
-        help="Seconds this call may train: it stops after the update in progress, "
-             "checkpointed (--resume continues), e.g. the wall clock a student took.")] = None,
+        help="Seconds the run may train in all, resumed calls included: it stops after the "
+             "update in progress, checkpointed, e.g. at the wall clock a student took.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a Dreamer (image reconstruction) or State Recon baseline offline on D, ending in
