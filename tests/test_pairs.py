@@ -229,3 +229,22 @@ def test_verify_redraws_a_sample_by_default_and_finds_frames_rewritten_whole(
     result = run_command("data", "verify", str(copy))
     assert result.returncode == 1 and "re-render differs" in result.stderr
     assert run_command("data", "verify", str(copy), "--rerender", "0").returncode == 0
+
+
+def test_a_collection_stores_the_pairs_that_d_rebuilds(tmp_path: Path, gl: None) -> None:
+    from twist_models.stages.collect import CollectError, collect, collect_preset
+
+    out = tmp_path / "dataset"
+    collect(out, collect_preset("tiny", pairs=True))
+    data = open_dataset(out)
+    assert data.has_pairs and data.n_episodes > 1
+    stored = stored_pairs(out)
+    for i in range(data.n_episodes):  # nothing before an episode's first step: the step itself
+        np.testing.assert_array_equal(stored[data.episode_starts[i]], data.episode(i).image[0])
+    # Drawn by the collection's render process, equal to a rebuild from D's physics and draws.
+    np.testing.assert_array_equal(reproduce_pairs(data, np.arange(data.n_steps)), stored)
+    assert verify_dataset(out).ok
+    # A shard without pairs would leave D unreadable: refused before anything is written.
+    with pytest.raises(CollectError, match="frame pairs True, but this run asks for False"):
+        collect(out, collect_preset("tiny"), shard="collect-001")
+    assert sorted(p.name for p in out.glob("*.zarr")) == ["collect-000.zarr"]

@@ -48,6 +48,7 @@ import torch
 from twist_data.errors import ConfigError, TwistError
 from twist_data.reader import ShardReader, open_dataset
 from twist_data.sampler import SamplerConfig, WindowSampler
+from twist_data.schema import Episode
 from twist_data.seeding import derived_seed
 from twist_data.writer import ShardWriter, shard_path
 from twist_models.agent import Agent
@@ -137,6 +138,11 @@ class CollectConfig:
     imperfect student meets, with the teacher's latents for them; 0: none."""
     push_steps: int = 10
     """Longest push, in agent steps (see ``push_every``)."""
+    pairs: bool = False
+    """Store each step's frame pair (datasets.md, ``pair_image``: the step before drawn under
+    the step's draw) as it collects, from which the ``readout`` recipe reads the speeds no
+    single frame shows; D then needs no ``twist-data render --reproduce --pairs``. Each
+    episode's pairs are drawn when it ends (~1.6 s an episode on one core). False: none."""
     student: str = ""
     """An agent bundle (``agent.pt`` from twist-distil) that acts instead of the frozen teacher
     (after ``learn_frames``), on its own render of each step: D then holds the states the
@@ -465,7 +471,8 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
             writer = ShardWriter.resume(path)
         else:
             extra = {"collect": to_json(config), "teacher": to_json(teacher_config)}
-            writer = ShardWriter.create(out, shard, simulated_spec(env, renderer, extra))
+            writer = ShardWriter.create(out, shard, simulated_spec(env, renderer, extra),
+                                        pairs=config.pairs)
         with writer:
             run = Collector(out, path, folder, config, teacher_config, env, renderer, writer, seed,
                        torch_device, student)
@@ -473,6 +480,20 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
                 return run.loop(on_progress)
             finally:
                 run.board.close()
+
+
+def episode_pairs(renderer: DRRenderer | RenderProcess, episode: Episode) -> np.ndarray:
+    """Every step's pair frames [T, K, H, W, 3] of a recorded ``episode``, drawn by the
+    collection's own renderer: the step before under the step's draw, the first step itself
+    (:func:`twist_sim.rerender.pair_frames`, which rebuilds them from D)."""
+    before = [episode.physics[max(t - 1, 0)] for t in range(len(episode))]
+    draws = [{k: v[t] for k, v in episode.dr.items()} for t in range(len(episode))]
+    if isinstance(renderer, RenderProcess):  # queued together, gathered once
+        for physics, params in zip(before, draws, strict=True):
+            renderer.submit(physics, params)
+        return renderer.gather()
+    return np.stack([renderer.render(physics, params)
+                     for physics, params in zip(before, draws, strict=True)])
 
 
 def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
@@ -487,7 +508,8 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
                                  ("views", spec.views, config.views),
                                  ("image size", spec.image_height, config.image_size),
                                  ("supersample", spec.supersample, config.supersample),
-                                 ("action repeat", spec.action_repeat, config.action_repeat)):
+                                 ("action repeat", spec.action_repeat, config.action_repeat),
+                                 ("frame pairs", open_dataset(out).has_pairs, config.pairs)):
             if have != want:
                 raise CollectError(f"{str(out)!r} holds a dataset with {name} {have!r}, but this "
                                    f"run asks for {want!r}; use another --out")
@@ -643,6 +665,10 @@ class Collector:
                                            seed=episode_seed, policy_name=name,
                                            teacher_step=step, env_step=frames,
                                            timings=self.seconds)
+        if c.pairs:
+            tick = time.perf_counter()
+            episode = dataclasses.replace(episode, pair_image=episode_pairs(self.renderer, episode))
+            self.seconds["render"] += time.perf_counter() - tick
         tick = time.perf_counter()
         try:
             self.writer.append(episode, info)
