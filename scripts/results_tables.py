@@ -84,6 +84,14 @@ def meets_target(record: dict[str, Any]) -> bool:
     return record.get("ratio_to_teacher") is not None and record["ratio_to_teacher"] >= TARGET
 
 
+def student_cells(readout: dict[str, Any] | None) -> tuple[str, str]:
+    """The `readout` student's figure and ratio cells, bold where it meets its target."""
+    student, share = figure(readout), ratio(readout)
+    if readout is not None and meets_target(readout):
+        return f"**{student}**", f"**{share}**"
+    return student, share
+
+
 def rows(records: Iterable[dict[str, Any]]) -> list[tuple[str, str, dict[str, dict[str, Any]]]]:
     """(task, setting, {agent: record}) in the records' order, one per task and setting."""
     out: dict[tuple[str, str], dict[str, dict[str, Any]]] = {}
@@ -98,10 +106,7 @@ def overview(records: list[dict[str, Any]]) -> str:
              "| `paper` recipe | Dreamer w/ DR | zero actions |", "|---|---|---|---|---|---|---|"]
     for task, setting, cells in rows(records):
         readout = cells.get("readout")
-        bold = readout is not None and meets_target(readout)
-        student, share = figure(readout), ratio(readout)
-        if bold:
-            student, share = f"**{student}**", f"**{share}**"
+        student, share = student_cells(readout)
         paper = any(r["source"] == "paper" for r in cells.values())
         lines.append(f"| {task}, {setting} | {figure(cells.get('teacher'))} | {student} | {share} | "
                      f"{figure(cells.get('paper-recipe'), paper)} | "
@@ -131,9 +136,7 @@ def readme(records: list[dict[str, Any]]) -> str:
             continue
         setting, cells = first[task]
         readout = cells.get("readout")
-        student, share = figure(readout), ratio(readout)
-        if readout is not None and meets_target(readout):
-            student, share = f"**{student}**", f"**{share}**"
+        student, share = student_cells(readout)
         lines.append(f"| {task}, {setting} | {figure(cells.get('teacher'))} | {student} | {share} | "
                      f"{figure(cells.get('paper-recipe'))} | {figure(cells.get('dreamer-dr'))} | "
                      f"{figure(cells.get('zero'))} | {published} |")

@@ -345,7 +345,8 @@ def export_lerobot(dataset_path: str | os.PathLike[str], out: str | os.PathLike[
     if short:
         log.info("leaving out %d one-step episodes (no action was taken in them): %s",
                  len(short), short)
-        chosen = [i for i in chosen if i not in set(short)]
+        skipped = set(short)
+        chosen = [i for i in chosen if i not in skipped]
         if not chosen:
             raise LeRobotExportError(f"every episode of {data.path} has one step: there is no "
                                      "frame to export")

@@ -294,9 +294,8 @@ class ShardReader:
                 reader = _ZarrFrameReader(arr)
             else:
                 decoder, checksum = direct
-                drawn = "render" in self.spec.extra or "generator" in self.spec.extra
                 reader = FrameReader(arr, self.path / "data" / key, decoder,
-                                     int(arr.shards[0]), checksum, refuse_black=drawn)
+                                     int(arr.shards[0]), checksum, refuse_black=self.spec.drawn)
             self._frames[key] = reader
         return reader
 

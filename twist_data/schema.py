@@ -107,6 +107,12 @@ class DatasetSpec:
         factors = {int(block.get("supersample", 1)) for block in self.extra.get("render") or []}
         return factors.pop() if len(factors) == 1 else None
 
+    @property
+    def drawn(self) -> bool:
+        """Whether twist drew the frames (its renderer or its synthetic generator), which
+        never draw a frame of zeros: one in such a D was overwritten under a valid checksum."""
+        return "render" in self.extra or "generator" in self.extra
+
     def image_agent_info(self) -> dict[str, Any]:
         """How an agent trained on these images must be shown the world again: task, action
         repeat, image size and supersampling (None: unknown)."""

@@ -82,7 +82,6 @@ def _verify_images(shard: ShardReader, problem: Callable[..., None],
     (which checks the index's and, in format 2, each frame's CRC32C); a file that fails is
     read frame by frame so that each damaged episode is named with its damaged steps."""
     arr, n, views = shard.array(key), shard.n_steps, shard.spec.views
-    rendered = "render" in shard.spec.extra or "generator" in shard.spec.extra
     missing = dict(shard.missing_chunks(key, 0, n))
     per_file = rows_per_file(arr)
     for a in range(0, n, per_file):
@@ -116,7 +115,7 @@ def _verify_images(shard: ShardReader, problem: Callable[..., None],
                         f"decoded ({steps[0][1]})", key, episode)
         else:  # twist draws no frame of zeros: one is a frame overwritten, checksum and all
             black = (np.flatnonzero(frames.reshape((b - a) * views, -1).max(1) == 0)
-                     if rendered else np.zeros(0, np.int64))
+                     if shard.spec.drawn else np.zeros(0, np.int64))
             for i in black[:16].tolist():
                 t, v = a + i // views, i % views
                 episode = int(np.searchsorted(shard.episode_ends, t, side="right"))

@@ -437,6 +437,12 @@ def _render_episode(renderer: DRRenderer, sampler: Any, episode: Episode, seed: 
                                pair_image=pair)
 
 
+def pair_instant(t: int) -> int:
+    """The instant step ``t``'s pair frame draws (under step ``t``'s draw): the step before,
+    or ``t`` itself at the episode's first step, where nothing came before."""
+    return max(t - 1, 0)
+
+
 def pair_frames(renderer: DRRenderer, physics: np.ndarray, t: int,
                 params: Mapping[str, np.ndarray], out: np.ndarray) -> np.ndarray:
     """Step ``t``'s pair frames (datasets.md, §2 ``pair_image``): the step before drawn
@@ -447,7 +453,7 @@ def pair_frames(renderer: DRRenderer, physics: np.ndarray, t: int,
     Why: acting holds one scene per episode, so the frame before a step is that scene at the
     step before, seen from where a tracking camera stood then; D draws a new scene at every
     step, and this draws the step before again in this step's scene."""
-    return renderer.render(physics[max(t - 1, 0)], params, out=out)
+    return renderer.render(physics[pair_instant(t)], params, out=out)
 
 
 def _concat_views(old: Episode, new: Episode) -> Episode:

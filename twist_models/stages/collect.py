@@ -73,6 +73,7 @@ from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teac
 from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
 from twist_sim.render import DRRenderer, FrameRenderer
 from twist_sim.render_process import RenderProcess
+from twist_sim.rerender import pair_instant
 from twist_sim.rollout import Policy, random_policy, record_episode, simulated_spec
 from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Dynamics, TaskEnv, task_spec
 
@@ -482,18 +483,14 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
                 run.board.close()
 
 
-def episode_pairs(renderer: DRRenderer | RenderProcess, episode: Episode) -> np.ndarray:
+def episode_pairs(renderer: FrameRenderer, episode: Episode) -> np.ndarray:
     """Every step's pair frames [T, K, H, W, 3] of a recorded ``episode``, drawn by the
-    collection's own renderer: the step before under the step's draw, the first step itself
-    (:func:`twist_sim.rerender.pair_frames`, which rebuilds them from D)."""
-    before = [episode.physics[max(t - 1, 0)] for t in range(len(episode))]
-    draws = [{k: v[t] for k, v in episode.dr.items()} for t in range(len(episode))]
-    if isinstance(renderer, RenderProcess):  # queued together, gathered once
-        for physics, params in zip(before, draws, strict=True):
-            renderer.submit(physics, params)
-        return renderer.gather()
-    return np.stack([renderer.render(physics, params)
-                     for physics, params in zip(before, draws, strict=True)])
+    collection's own renderer, queued together and gathered once (the rule of
+    :func:`twist_sim.rerender.pair_frames`, which rebuilds them from D)."""
+    for t in range(len(episode)):
+        renderer.submit(episode.physics[pair_instant(t)],
+                        {k: v[t] for k, v in episode.dr.items()})
+    return renderer.gather()
 
 
 def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
