@@ -23,8 +23,30 @@ BEGIN, END = "<!-- options: {name} -->", "<!-- /options -->"
 _BLOCK = re.compile(r"<!-- options: (?P<name>[\w -]+) -->\n.*?<!-- /options -->", re.S)
 
 
+#: Markdown lines stay within this many characters (a list item's text wraps onto indented lines).
+WIDTH = 100
+
+
 def _cell(text: str) -> str:
-    return " ".join(text.split()).replace("|", "\\|")
+    return " ".join(text.split())
+
+
+#: A word that, opening a line, would start a list, heading or quote instead of continuing one.
+_BLOCK_START = re.compile(r"^([-+*>#]+|\d+[.)])$")
+
+
+def _item(head: str, text: str, indent: str = "  ") -> str:
+    """``head`` and ``text`` as one Markdown paragraph or list item wrapped at WIDTH (a word
+    longer than a line, such as a comma-separated default, breaks after its commas)."""
+    lines: list[str] = []
+    words = [piece for word in f"{head} {_cell(text)}".split(" ")
+             for piece in (re.findall(r"[^,]+,?", word) if len(word) > WIDTH else [word])]
+    for word in words:
+        if lines and (len(lines[-1]) + 1 + len(word) <= WIDTH or _BLOCK_START.match(word)):
+            lines[-1] += " " + word
+        else:
+            lines.append((indent if lines else "") + word)
+    return "\n".join(lines)
 
 
 # Typer vendors its own click (typer._click, private), so commands and contexts are reached
@@ -39,14 +61,14 @@ def _rows(command: Any, ctx: Any) -> Iterator[str]:
         if record is None:
             continue
         names, meaning = record
-        yield f"| `{_cell(names)}` | {_cell(meaning)} |"
+        yield _item(f"- `{_cell(names)}`:", meaning)
 
 
 def _table(command: Any, path: str) -> str:
     ctx = _context(command, path)
     rows = "\n".join(_rows(command, ctx))
     usage = " ".join(command.collect_usage_pieces(ctx))
-    return (f"`{path} {usage}`\n\n| option | meaning |\n|---|---|\n{rows}\n")
+    return f"`{path} {usage}`\n\n{rows}\n"
 
 
 def options_markdown(name: str) -> str:
@@ -57,8 +79,8 @@ def options_markdown(name: str) -> str:
         parts = []
         for sub in command.list_commands(ctx):
             subcommand = command.get_command(ctx, sub)
-            summary = _cell(subcommand.get_short_help_str(limit=200))
-            parts.append(f"**`{name} {sub}`**: {summary}\n\n{_table(subcommand, f'{name} {sub}')}")
+            summary = _item(f"**`{name} {sub}`**:", subcommand.get_short_help_str(limit=200), "")
+            parts.append(f"{summary}\n\n{_table(subcommand, f'{name} {sub}')}")
         return "\n".join(parts)
     return _table(command, name)
 

@@ -116,10 +116,11 @@ def overview(records: list[dict[str, Any]]) -> str:
 
 def readme(records: list[dict[str, Any]]) -> str:
     """One row per task of the paper (its first row of ours, dashes where there is none), the
-    paper's figures in a column of their own."""
-    lines = ["| task | teacher on states | `readout` student | / teacher | `paper` recipe "
-             "| Dreamer w/ DR | zero | the paper: oracle / TWIST / Dreamer w/ DR |",
-             "|---|---|---|---|---|---|---|---|"]
+    paper's figures in a column of their own; a row's setting beyond its seeds and episodes in
+    a note below the table, so that every line stays short."""
+    lines = ["| task | seeds | episodes | teacher on states | `readout` student | / teacher "
+             "| `paper` recipe | Dreamer w/ DR | zero | the paper: oracle / TWIST / Dreamer w/ DR |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     first: dict[str, tuple[str, dict[str, dict[str, Any]]]] = {}
     for task, setting, cells in rows(r for r in records if r["source"] == "ours"):
         first.setdefault(task, (setting, cells))
@@ -127,20 +128,30 @@ def readme(records: list[dict[str, Any]]) -> str:
     for record in records:
         if record["source"] == "paper":
             paper.setdefault(record["task"], {})[record["agent"]] = record
+    notes = []
     for task in TASKS:
         theirs = paper.get(task, {})
         published = " / ".join(f"{theirs[a]['mean']:.1f}" if a in theirs else "–"
                                for a in ("teacher", "paper-recipe", "dreamer-dr")) if theirs else ""
         if task not in first:
-            lines.append(f"| {task} | – | – | – | – | – | – | {published} |")
+            lines.append(f"| {task} | – | – | – | – | – | – | – | – | {published} |")
             continue
         setting, cells = first[task]
         readout = cells.get("readout")
         student, share = student_cells(readout)
-        lines.append(f"| {task}, {setting} | {figure(cells.get('teacher'))} | {student} | {share} | "
-                     f"{figure(cells.get('paper-recipe'))} | {figure(cells.get('dreamer-dr'))} | "
-                     f"{figure(cells.get('zero'))} | {published} |")
-    return "\n".join(lines) + "\n"
+        lead = cells.get("teacher") or next(iter(cells.values()))
+        seeds = ", ".join(str(s) for s in lead["collection_seeds"])
+        episodes = str(lead["episodes"])
+        if any(r.get("mean_30") is not None for r in cells.values()):
+            episodes += " (30)"
+        lines.append(f"| {task} | {seeds} | {episodes} | {figure(cells.get('teacher'))} | "
+                     f"{student} | {share} | {figure(cells.get('paper-recipe'))} | "
+                     f"{figure(cells.get('dreamer-dr'))} | {figure(cells.get('zero'))} | "
+                     f"{published} |")
+        detail = re.search(r"\((.*)\)\s*$", setting)
+        if detail and detail[1] != "success":  # success rates are the caption's
+            notes.append(f"- {task}: {detail[1]}.")
+    return "\n".join([*lines, *([""] if notes else []), *notes]) + "\n"
 
 
 RENDERERS = {"overview": overview, "readme": readme}

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import tomllib
 
-from twist_cli.reference import COMMANDS, options_markdown, render
+from twist_cli.reference import COMMANDS, WIDTH, _item, options_markdown, render
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -26,6 +26,26 @@ def test_every_console_command_is_documented() -> None:
 def test_generated_table_lists_each_option_of_a_command() -> None:
     table = options_markdown("twist-distil")
     for option in ("--dataset", "--recipe", "--resume", "--set"):
-        assert f"| `{option} " in table or f"| `{option}` |" in table
+        assert f"- `{option} " in table or f"- `{option}`:" in table
     group = options_markdown("twist-data")
     assert "**`twist-data verify`**" in group and "**`twist-data salvage`**" in group
+
+
+def test_an_option_wraps_into_one_list_item_of_short_lines() -> None:
+    words = ["word"] * 60 + ["-", "1.", "#", ",".join(["choice"] * 40)]
+    item = _item("- `--flag <str>`:", " ".join(words))
+    lines = item.splitlines()
+    assert len(lines) > 3 and lines[0].startswith("- `--flag <str>`: word")
+    # Continuations are indented, never open a list, heading or numbered item of their own,
+    # and a comma-separated word longer than a line breaks after its commas.
+    assert all(line.startswith("  ") and line.split()[0] not in ("-", "1.", "#")
+               for line in lines[1:])
+    assert all(len(line) <= WIDTH for line in lines if "-" not in line.split())
+    assert " ".join(item.split()).replace(", ", ",") == " ".join(
+        ["- `--flag <str>`:", *words])
+
+
+def test_the_reference_has_no_line_over_200_characters() -> None:
+    for name in COMMANDS:
+        long = [line for line in options_markdown(name).splitlines() if len(line) > 200]
+        assert not long, f"{name}: {long[0][:80]}…"

@@ -52,7 +52,7 @@ def test_relative_links_resolve(document: Path) -> None:
 
 
 def test_front_page_is_short() -> None:
-    assert len((ROOT / "README.md").read_text().splitlines()) <= 200
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 150
 
 
 @pytest.mark.parametrize(("page", "most"), [("docs/results.md", 250), ("docs/findings.md", 200)])
