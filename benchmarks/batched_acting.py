@@ -23,11 +23,11 @@ import time
 
 import torch
 
-from twist_models.acting import ImageAgent, StateAgent
 from twist_models.agent import Agent
 from twist_models.config import AgentConfig, student_preset, teacher_preset
-from twist_models.stages.evaluation import EvalConfig, evaluate, evaluation_envs
 from twist_models.teacher import Teacher
+from twist_pipeline.acting import ImageAgent, StateAgent
+from twist_pipeline.evaluation import EvalConfig, evaluate, evaluation_envs
 from twist_sim.tasks import TaskEnv
 
 TASK = "cartpole-balance"

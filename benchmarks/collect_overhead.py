@@ -32,9 +32,9 @@ import numpy as np
 
 from twist_data.writer import ShardWriter
 from twist_models.networks import single_threaded
-from twist_models.policies import teacher_policy
-from twist_models.stages.collect import collect_preset
 from twist_models.teacher import Teacher
+from twist_pipeline.acting import StateAgent
+from twist_pipeline.collect import collect_preset
 from twist_sim.randomisation import dr_preset
 from twist_sim.render import DRRenderer
 from twist_sim.render_process import RenderProcess
@@ -55,7 +55,7 @@ def collection_slice(task: str, episodes: int, policy_name: str, preset: str,
         # One policy for all episodes: the teacher's latent resets itself at is_first.
         if policy_name == "teacher":
             config = collect_preset(preset).teacher_config(env.state_dim, env.action_dim)
-            policy = teacher_policy(Teacher(config), env.action_dim)
+            policy = StateAgent(Teacher(config), None, explore=True)
         else:
             policy = random_policy(env.action_dim, 0)
         with ShardWriter.create(folder, "bench", simulated_spec(env, renderer)) as writer:

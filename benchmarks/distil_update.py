@@ -28,9 +28,9 @@ from twist_data.sampler import WindowSampler
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.config import student_preset, teacher_preset
 from twist_models.distillation import KEYS, Distillation, distil_preset
-from twist_models.stages.distil import distil
 from twist_models.student import Student
 from twist_models.teacher import Teacher, save_teacher
+from twist_pipeline.distil import distil
 
 
 def main() -> None:

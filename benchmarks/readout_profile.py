@@ -25,8 +25,8 @@ from torch.profiler import ProfilerActivity, profile
 from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_models.config import teacher_preset
 from twist_models.distillation import distil_preset
-from twist_models.stages.distil import distil
 from twist_models.teacher import Teacher, save_teacher
+from twist_pipeline.distil import distil
 
 RANGES = ("frame/data", "frame/forward", "frame/backward", "frame/step")
 

@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from twist_models.stages.collect import COLLECT_PRESETS, collect_preset
 from twist_models.teacher import Teacher
+from twist_pipeline.collect import COLLECT_PRESETS, collect_preset
 from twist_sim.tasks import TaskEnv
 
 PARTS = ("model_forward", "model_backward", "model_step", "behaviour")

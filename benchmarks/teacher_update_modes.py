@@ -51,8 +51,8 @@ from collections.abc import Callable
 import torch
 
 from twist_models.rssm import State
-from twist_models.stages.collect import COLLECT_PRESETS, collect_preset
 from twist_models.teacher import Teacher
+from twist_pipeline.collect import COLLECT_PRESETS, collect_preset
 from twist_sim.tasks import TaskEnv
 
 VARIANTS = ("eager", "bf16", "compiled", "compiled_bf16", "compiled_steps_bf16",

@@ -8,7 +8,7 @@ if ! log="$(bash scripts/reference_env.sh 2>&1)"; then
   printf '%s\n' "$log" | tail -n 3
   echo "scripts/reference_env.sh failed: the tests against LeRobot and rliable skip"
 fi
-ruff check twist_data twist_models cli tests benchmarks research scripts
+ruff check twist_data twist_sim twist_models twist_pipeline twist_cli tests benchmarks research scripts
 # One worker per core (pytest-xdist; at most 8, each holds torch and MuJoCo), each taking whole
 # modules, so that a module's fixtures are built once; a later -n in "$@" wins (-n 0: one
 # process).

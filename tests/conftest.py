@@ -69,7 +69,7 @@ def fresh_dataset(tmp_path: Path) -> Path:
 def collected_tiny(tmp_path_factory: pytest.TempPathFactory, gl: None) -> Path:
     """A read-only D that `twist-collect --preset tiny` wrote (cartpole-balance, its teacher
     in collect/collect-000/), in ~15 s: the real pipeline's dataset at toy sizes."""
-    from twist_models.stages.collect import collect, collect_preset
+    from twist_pipeline.collect import collect, collect_preset
 
     out = tmp_path_factory.mktemp("collected") / "dataset"
     collect(out, collect_preset("tiny"))
@@ -79,7 +79,7 @@ def collected_tiny(tmp_path_factory: pytest.TempPathFactory, gl: None) -> Path:
 @pytest.fixture(scope="session")
 def gl() -> None:
     """Skip rendering tests, with the reason, only if no OpenGL context can be made at all."""
-    from twist_data.errors import RenderUnavailableError
+    from twist_sim.errors import RenderUnavailableError
     from twist_sim.randomisation import dr_preset
     from twist_sim.render import DRRenderer
 

@@ -1,5 +1,5 @@
 """rliable's aggregate statistics of the scores in a JSON file, in the reference environment
-(scripts/reference_env.sh), for tests/test_eval.py to compare with twist_models.statistics:
+(scripts/reference_env.sh), for tests/test_eval.py to compare with twist_pipeline.statistics:
 
     python tests/rliable_reference.py IN.json OUT.json
 

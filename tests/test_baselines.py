@@ -20,7 +20,7 @@ from twist_models.config import (
     to_json,
 )
 from twist_models.dreamer import Dreamer
-from twist_models.stages.baselines import (
+from twist_pipeline.baselines import (
     KEYS,
     BaselineConfig,
     BaselineError,

@@ -20,17 +20,17 @@ import torch
 import zarr
 
 from tests.conftest import board_events, run_command
-from twist_data.errors import ConfigError, UnknownTaskError
+from twist_data.errors import ConfigError
 from twist_data.reader import MatchingDataset, open_dataset
 from twist_data.schema import ATTRS_KEY
 from twist_data.seeding import derived_seed
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
-from twist_models.acting import load_agent
 from twist_models.checkpoint import read_checkpoint
 from twist_models.config import teacher_preset
-from twist_models.policies import RandomPushes
-from twist_models.stages.collect import (
+from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, find_teacher, load_teacher
+from twist_pipeline.acting import RandomPushes, load_agent
+from twist_pipeline.collect import (
     COLLECT_PRESETS,
     CollectConfig,
     CollectError,
@@ -38,10 +38,11 @@ from twist_models.stages.collect import (
     collect_preset,
     shard_seed,
 )
-from twist_models.stages.runlog import recorded_config
-from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, find_teacher, load_teacher
+from twist_pipeline.runlog import recorded_config
 from twist_sim import tasks
-from twist_sim.tasks import Dynamics, TaskEnv
+from twist_sim.errors import UnknownTaskError
+from twist_sim.randomisation import Dynamics
+from twist_sim.tasks import TaskEnv
 
 pytestmark = pytest.mark.usefixtures("gl")
 COLLECT = [sys.executable, "-m", "twist_cli.collect"]

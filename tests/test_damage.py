@@ -285,8 +285,8 @@ def test_the_distiller_refuses_damage_under_valid_checksums_writing_nothing(
 
     from twist_models.config import teacher_preset
     from twist_models.distillation import distil_preset
-    from twist_models.stages.distil import distil
     from twist_models.teacher import Teacher, save_teacher
+    from twist_pipeline.distil import distil
 
     data = write_synthetic_dataset(tmp_path / "ds", SynthConfig(episodes=8, steps=30, seed=5))
     _rewrite(next(data.glob("*.zarr")), "data/reward", lambda v: v.__setitem__(45, v[45] + 1))

@@ -37,10 +37,10 @@ from twist_models.config import (
 from twist_models.distillation import DistilConfig, Distillation, distil_preset, latent_agreement
 from twist_models.losses import distillation_loss, imagined_distillation_loss
 from twist_models.perception import stack_frames, step_frames
-from twist_models.stages.distil import DistilError, distil, load_student, stored_config
-from twist_models.stages.runlog import append_csv, recorded_config, resume_conflicts
 from twist_models.student import Student, copy_teacher_dynamics
 from twist_models.teacher import Teacher, load_teacher, save_teacher
+from twist_pipeline.distil import DistilError, distil, load_student, stored_config
+from twist_pipeline.runlog import append_csv, recorded_config, resume_conflicts
 
 # Images are deterministic drawings of the state (plus randomised backgrounds), so the
 # image -> teacher-latent mapping is learnable.
@@ -296,7 +296,7 @@ def test_a_time_limit_stops_with_a_deployable_student_and_the_run_resumes(
         distil_inputs, tmp_path, monkeypatch) -> None:
     """The clock is the module's own, advanced one minute per update: the limit of 3.5 minutes
     passes during the fourth update, whatever the machine's speed."""
-    import twist_models.stages.distil as stage
+    import twist_pipeline.distil as stage
 
     dataset, teacher = distil_inputs
     config = distil_preset("tiny", steps=10, eval_every=5, checkpoint_every=5, snapshot_every=5)
@@ -456,7 +456,7 @@ def test_distillation_never_imports_a_simulator(distil_inputs, tmp_path) -> None
     code = (
         "import sys\n"
         "from twist_models.distillation import distil_preset\n"
-        "from twist_models.stages.distil import distil\n"
+        "from twist_pipeline.distil import distil\n"
         f"distil({str(dataset)!r}, {str(tmp_path / 'run')!r}, distil_preset('tiny', steps=2),"
         f" teacher={str(teacher)!r})\n"
         "import twist_cli.distil\n"

@@ -17,10 +17,11 @@ import torch
 
 from tests.conftest import reference_python, run_command
 from twist_data.errors import ConfigError
-from twist_models.acting import AgentError, ScriptedAgent, load_agent, reference_agent
 from twist_models.agent import Agent
 from twist_models.config import AgentConfig, student_preset, teacher_preset
-from twist_models.stages.evaluation import (
+from twist_models.teacher import Teacher, save_teacher
+from twist_pipeline.acting import AgentError, ScriptedAgent, load_agent, reference_agent
+from twist_pipeline.evaluation import (
     EvalConfig,
     EvalError,
     agents_setting,
@@ -28,8 +29,7 @@ from twist_models.stages.evaluation import (
     run_evaluation,
     summarise,
 )
-from twist_models.statistics import format_paired, iqm, paired_difference, stratified_bootstrap
-from twist_models.teacher import Teacher, save_teacher
+from twist_pipeline.statistics import format_paired, iqm, paired_difference, stratified_bootstrap
 from twist_sim.tasks import TaskEnv
 
 
@@ -339,7 +339,7 @@ def test_an_output_that_is_a_file_is_refused_before_any_episode(tmp_path) -> Non
 
 
 def test_probability_of_improvement_by_hand() -> None:
-    from twist_models.statistics import probability_of_improvement
+    from twist_pipeline.statistics import probability_of_improvement
 
     # Pairs: 1>0 (1), 1>2 (0), 2>0 (1), 2=2 (1/2): 2.5 / 4.
     one = probability_of_improvement([np.array([1.0, 2.0])], [np.array([0.0, 2.0])])
@@ -356,7 +356,7 @@ def test_probability_of_improvement_by_hand() -> None:
 
 
 def test_performance_profile_by_hand() -> None:
-    from twist_models.statistics import performance_profile
+    from twist_pipeline.statistics import performance_profile
 
     strata = [np.array([0.1, 0.5, 0.9]), np.array([0.2, 0.8])]
     # At 0.5: 1/3 of the first stratum (0.5 itself is not above) and 1/2 of the second.
@@ -368,7 +368,7 @@ def test_statistics_equal_rliables(tmp_path) -> None:
     """The IQM, its stratified bootstrap interval, the probability of improvement and its
     interval, and the performance profile, against rliable's own (Agarwal et al., 2021) on the
     same runs: the estimates to rounding, the intervals to the bootstraps' resampling noise."""
-    from twist_models.statistics import performance_profile, probability_of_improvement
+    from twist_pipeline.statistics import performance_profile, probability_of_improvement
 
     python = reference_python()
     rng = np.random.default_rng(7)
@@ -539,7 +539,7 @@ def test_worker_processes_give_the_episodes_of_one_process(gl, agents) -> None:
 def test_environments_made_once_serve_every_seed(gl, agents) -> None:
     """``evaluation_envs`` + ``envs=``: one set of environments used for two seeds in turn
     gives the episodes, returns and frames that fresh environments give each seed."""
-    from twist_models.stages.evaluation import evaluation_envs
+    from twist_pipeline.evaluation import evaluation_envs
 
     config = EvalConfig(task="cartpole-balance", episodes=3, max_steps=10)
     agent = load_agent(agents["agent"])
@@ -568,7 +568,7 @@ def test_environments_made_once_serve_every_seed(gl, agents) -> None:
 
 
 def test_environment_workers_report_a_bad_background_folder_as_ours(tmp_path) -> None:
-    from twist_data.errors import BackgroundError
+    from twist_sim.errors import BackgroundError
     from twist_sim.randomisation import DRConfig
     from twist_sim.vector_env import EnvWorkers
 
@@ -581,7 +581,7 @@ def test_saved_trajectories_replay_to_the_same_states_and_rewards(tmp_path) -> N
     # The saved actions, replayed in a fresh environment from the episode's seed, must give
     # back the saved states and rewards, and the rewards must sum to the reported return.
     from twist_data.seeding import evaluation_episode_seed
-    from twist_models.stages.evaluation import TRAJECTORIES, trajectory_name
+    from twist_pipeline.evaluation import TRAJECTORIES, trajectory_name
 
     config = EvalConfig(task="cartpole-balance", dr="none", episodes=2, max_steps=12)
     run_evaluation({"random": "random", "zero": "zero"}, config, [3], tmp_path,

@@ -9,9 +9,9 @@ import pandas as pd
 import pytest
 
 from twist_data.errors import ConfigError
-from twist_models.acting import ScriptedAgent
-from twist_models.stages.evaluation import EvalConfig
-from twist_models.stages.factors import FACTOR_TABLE, evaluate_factors, factor_table
+from twist_pipeline.acting import ScriptedAgent
+from twist_pipeline.evaluation import EvalConfig
+from twist_pipeline.factors import FACTOR_TABLE, evaluate_factors, factor_table
 
 
 def test_the_factor_table_by_hand() -> None:

@@ -13,8 +13,8 @@ gymnasium = pytest.importorskip("gymnasium")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 from twist_data.errors import ConfigError, TwistError  # noqa: E402
-from twist_models.acting import PolicyAgent  # noqa: E402
-from twist_models.stages.evaluation import EvalConfig, evaluate, run_evaluation  # noqa: E402
+from twist_pipeline.acting import PolicyAgent  # noqa: E402
+from twist_pipeline.evaluation import EvalConfig, evaluate, run_evaluation  # noqa: E402
 from twist_sim.gym_env import TwistEnv, environment_id  # noqa: E402
 from twist_sim.randomisation import DR_PRESETS  # noqa: E402
 from twist_sim.tasks import TASKS  # noqa: E402

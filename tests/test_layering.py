@@ -1,6 +1,7 @@
 """The layers of the code: twist_data knows nothing of the simulator or the models, twist_sim
-nothing of the models, building blocks nothing of the pipeline's stages, and no library module
-anything of the console commands. Checked on every import statement, function-level ones
+and the models' building blocks (twist_models) nothing of each other, neither anything of the
+pipeline (twist_pipeline) that joins them, and no library module anything of the console
+commands. Checked on every import statement, function-level ones
 included; and D is read, verified and exported with MuJoCo and dm_control absent."""
 
 import ast
@@ -28,11 +29,15 @@ def modules(folder: str) -> list[Path]:
     return sorted((ROOT / folder).glob("*.py"))
 
 
+#: Each package and what it must not import: the dataset knows neither simulator nor models;
+#: the simulator and the models' building blocks know each other not at all; the pipeline,
+#: which joins them, knows no console command.
 LAYERS = [
-    ("twist_data", ("twist_sim", "twist_models", "twist_cli", "mujoco", "dm_control")),
-    ("twist_sim", ("twist_models", "twist_cli")),
-    ("twist_models", ("twist_models.stages", "twist_cli")),
-    ("twist_models/stages", ("twist_cli",)),
+    ("twist_data", ("twist_sim", "twist_models", "twist_pipeline", "twist_cli", "mujoco",
+                    "dm_control")),
+    ("twist_sim", ("twist_models", "twist_pipeline", "twist_cli")),
+    ("twist_models", ("twist_sim", "twist_pipeline", "twist_cli", "mujoco", "dm_control")),
+    ("twist_pipeline", ("twist_cli",)),
 ]
 
 
@@ -45,14 +50,14 @@ def test_no_module_imports_a_higher_layer(folder: str, forbidden: tuple[str, ...
 
 
 def test_evaluation_does_not_import_the_collector() -> None:
-    names = imported_modules(ROOT / "twist_models" / "stages" / "evaluation.py")
-    assert not any(n.startswith("twist_models.stages.collect") for n in names)
+    names = imported_modules(ROOT / "twist_pipeline" / "evaluation.py")
+    assert not any(n.startswith("twist_pipeline.collect") for n in names)
 
 
 def test_the_check_sees_function_level_imports(tmp_path: Path) -> None:
     source = tmp_path / "m.py"
-    source.write_text("def f():\n    from twist_models.stages import collect\n")
-    assert "twist_models.stages.collect" in imported_modules(source)
+    source.write_text("def f():\n    from twist_pipeline import collect\n")
+    assert "twist_pipeline.collect" in imported_modules(source)
 
 
 #: Run in a fresh interpreter where importing MuJoCo or dm_control fails, as on a machine

@@ -10,9 +10,9 @@ import pytest
 
 from tests.conftest import run_command
 from twist_models.distillation import distil_preset
-from twist_models.stages.distil import distil
-from twist_models.stages.evaluation import EvalConfig, run_evaluation
-from twist_models.stages.learning_curve import CurveError, evaluate_snapshots, snapshots
+from twist_pipeline.distil import distil
+from twist_pipeline.evaluation import EvalConfig, run_evaluation
+from twist_pipeline.learning_curve import CurveError, evaluate_snapshots, snapshots
 
 CONFIG = EvalConfig(task="cartpole-balance", episodes=2, max_steps=15)
 
@@ -54,8 +54,8 @@ def test_closed_loop_agreement_is_measured_once_per_snapshot(run: Path, tmp_path
     kept = pd.read_csv(tmp_path / "curve" / "agreement.csv")
     assert list(kept["agent"]) == ["u00000004", "u00000008"] and (kept["episodes"] == 2).all()
     # Seeded by the evaluation's episodes: measured again, the same figures.
-    from twist_models.acting import load_agent
-    from twist_models.stages.learning_curve import closed_loop_agreement, run_teacher
+    from twist_pipeline.acting import load_agent
+    from twist_pipeline.learning_curve import closed_loop_agreement, run_teacher
 
     again = closed_loop_agreement(load_agent(run / "agent-00000008.pt"),
                                   load_agent(run_teacher(run)), CONFIG, 2)

@@ -583,8 +583,8 @@ def test_compile_settings_pick_cuda_graphs_on_a_gpu_and_eager_on_auto_cpu() -> N
 
 
 def test_run_configs_refuse_an_unknown_compile_setting_in_one_line() -> None:
-    from twist_models.stages.baselines import BaselineConfig
-    from twist_models.stages.collect import CollectConfig
+    from twist_pipeline.baselines import BaselineConfig
+    from twist_pipeline.collect import CollectConfig
 
     assert CollectConfig().compile == "auto" and BaselineConfig().compile == "off"
     for config in (CollectConfig, BaselineConfig):

@@ -232,7 +232,7 @@ def test_verify_redraws_a_sample_by_default_and_finds_frames_rewritten_whole(
 
 
 def test_a_collection_stores_the_pairs_that_d_rebuilds(tmp_path: Path, gl: None) -> None:
-    from twist_models.stages.collect import CollectError, collect, collect_preset
+    from twist_pipeline.collect import CollectError, collect, collect_preset
 
     out = tmp_path / "dataset"
     collect(out, collect_preset("tiny", pairs=True))

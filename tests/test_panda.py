@@ -154,7 +154,7 @@ def test_an_instant_restores_exactly_and_steps_on_alike() -> None:
 def test_a_tiny_collection_rerenders_bit_exactly(task: str, tmp_path, gl: None) -> None:
     from twist_data.reader import open_dataset
     from twist_data.verify import verify_dataset
-    from twist_models.stages.collect import collect, collect_preset
+    from twist_pipeline.collect import collect, collect_preset
     from twist_sim.rerender import check_reproduction
 
     collect(tmp_path, collect_preset("tiny", task=task, action_repeat=REPEAT, frames=200))
@@ -252,8 +252,8 @@ class ScriptedPush:
 def test_evaluation_reports_the_success_rate_beside_the_return(tmp_path) -> None:
     import pandas as pd
 
-    from twist_models.acting import PolicyAgent
-    from twist_models.stages.evaluation import EvalConfig, run_evaluation
+    from twist_pipeline.acting import PolicyAgent
+    from twist_pipeline.evaluation import EvalConfig, run_evaluation
 
     script = ScriptedPush()
     agents = {"script": PolicyAgent(script, script.observe, script.task), "zero": "zero"}

@@ -35,7 +35,6 @@ from twist_models.config import (
     teacher_preset,
     to_json,
 )
-from twist_models.curves import student_progress
 from twist_models.distillation import Distillation, ReadOutStage, distil_preset, split_context
 from twist_models.frame_targets import FrameRows
 from twist_models.losses import readout_loss
@@ -48,10 +47,11 @@ from twist_models.readout import (
     robust_standardisation,
     training_frames,
 )
-from twist_models.stages import distil as distill_stage
-from twist_models.stages.distil import DistilError, distil, load_student, stored_config
 from twist_models.student import Student, copy_teacher_filter
 from twist_models.teacher import Teacher, save_teacher
+from twist_pipeline import distil as distill_stage
+from twist_pipeline.curves import student_progress
+from twist_pipeline.distil import DistilError, distil, load_student, stored_config
 
 DATA = SynthConfig(episodes=8, steps=30, views=2, image_size=64, seed=11, length_jitter=6)
 LAYOUT = (("position", 3), ("velocity", 2))  # the synthetic cartpole's: x, cos, sin | ẋ, θ̇
@@ -699,7 +699,7 @@ def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Pat
         distil_preset("tiny", "dense", readout_mirror="average")
     with pytest.raises(ConfigError, match=r"a sign \(\+1 or -1\) per read component \(3\)"):
         dataclasses.replace(_paired(inputs[3]), mirror=(-1.0, 1.0))
-    from twist_models.stages import distil as stage
+    from twist_pipeline import distil as stage
 
     monkeypatch.setattr(stage, "state_mirror", lambda task: ())
     with pytest.raises(DistilError, match="task 'synthetic-cartpole' declares no mirror "
@@ -712,7 +712,7 @@ def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Pat
 
 def test_auto_mirroring_follows_the_tasks_declaration(inputs, tmp_path: Path,
                                                      monkeypatch) -> None:
-    from twist_models.stages import distil as stage
+    from twist_pipeline import distil as stage
 
     dataset, teacher_path, _, _ = inputs
     config = distil_preset("tiny", "readout", readout_mirror="auto", frame_eval_every=2)

@@ -28,9 +28,9 @@ from twist_models.frame_targets import (
     teacher_targets,
 )
 from twist_models.losses import frame_posterior_loss, weighted_state_loss
-from twist_models.stages.distil import distil, load_student, stored_config
 from twist_models.student import Student
 from twist_models.teacher import Teacher, save_teacher
+from twist_pipeline.distil import distil, load_student, stored_config
 
 DATA = SynthConfig(episodes=8, steps=30, views=2, image_size=64, seed=5, length_jitter=6)
 

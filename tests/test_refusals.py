@@ -31,11 +31,11 @@ from twist_data.synth import SynthConfig, write_synthetic_dataset
 from twist_data.verify import quick_problems
 from twist_models.config import teacher_preset
 from twist_models.distillation import distil_preset
-from twist_models.stages.baselines import BaselineConfig, train_baseline
-from twist_models.stages.collect import MAX_FRAMES, CollectConfig, collect, collect_preset
-from twist_models.stages.distil import distil
-from twist_models.stages.evaluation import MAX_EPISODES, EvalConfig, run_evaluation
 from twist_models.teacher import Teacher, save_teacher
+from twist_pipeline.baselines import BaselineConfig, train_baseline
+from twist_pipeline.collect import MAX_FRAMES, CollectConfig, collect, collect_preset
+from twist_pipeline.distil import distil
+from twist_pipeline.evaluation import MAX_EPISODES, EvalConfig, run_evaluation
 
 UNWRITABLE = Path("/proc/twist-refusals")  # root cannot create a file under /proc either
 

@@ -11,12 +11,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import run_command
-from twist_data.errors import (
-    BackgroundError,
-    ConfigError,
-    PhysicsStateError,
-    SchemaMismatchError,
-)
+from twist_data.errors import ConfigError, SchemaMismatchError
 from twist_data.reader import open_dataset
 from twist_data.verify import verify_dataset
 from twist_data.writer import ShardWriter
@@ -34,6 +29,7 @@ from twist_sim.backgrounds import (
     leaves,
     procedural_bank,
 )
+from twist_sim.errors import BackgroundError, PhysicsStateError
 from twist_sim.randomisation import DR_PRESETS, VIEW_PARAMS, DRConfig, DRSampler, dr_preset
 from twist_sim.render import DRRenderer
 from twist_sim.render_process import RenderProcess, RenderProcessError

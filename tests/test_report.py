@@ -15,10 +15,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from twist_data.errors import ConfigError, UnknownTaskError
+from twist_data.errors import ConfigError
 from twist_data.reader import open_dataset
 from twist_models.config import json_leaves, to_json
-from twist_models.stages.report import (
+from twist_pipeline.report import (
     AGENTS,
     EPISODE_RESULT_COLUMNS,
     RESULT_COLUMNS,
@@ -32,6 +32,7 @@ from twist_models.stages.report import (
     run_reproduction,
     run_scores,
 )
+from twist_sim.errors import UnknownTaskError
 
 
 def _results(scores: dict[tuple[str, str], list[float]]) -> pd.DataFrame:
@@ -285,7 +286,7 @@ def test_cli_refuses_bad_input_without_traceback(tmp_path: Path) -> None:
 
 def test_every_student_column_is_an_agent_with_a_valid_recipe() -> None:
     from twist_models.distillation import DISTIL_PRESETS, distil_preset
-    from twist_models.stages.report import AGENTS, STUDENT_VARIANTS
+    from twist_pipeline.report import AGENTS, STUDENT_VARIANTS
 
     assert set(STUDENT_VARIANTS) <= set(AGENTS)
     for name, (recipe, changes) in STUDENT_VARIANTS.items():
@@ -300,7 +301,7 @@ def test_every_student_column_is_an_agent_with_a_valid_recipe() -> None:
 def test_an_out_that_is_a_file_is_refused_before_any_stage_logs(tmp_path: Path,
                                                                 caplog: pytest.LogCaptureFixture
                                                                 ) -> None:
-    from twist_models.stages.report import ReportConfig, run_reproduction
+    from twist_pipeline.report import ReportConfig, run_reproduction
 
     target = tmp_path / "report.md"
     target.write_text("mine")

@@ -1,15 +1,23 @@
 """The run lifecycle every stage shares (RunFolder): a folder with a run is refused unless
 resumed, a resumed run whose config changed is refused naming both values, and the stored
-config round-trips."""
+config round-trips; a run recorded by earlier code resumes and evaluates as it did."""
 
+import dataclasses
 import json
+import tarfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pytest
 
 from twist_data.errors import TwistError
-from twist_models.stages.runlog import RunFolder
+from twist_data.reader import open_dataset
+from twist_data.verify import verify_dataset
+from twist_pipeline.collect import collect, stored_config
+from twist_pipeline.evaluation import EvalConfig, run_evaluation
+from twist_pipeline.runlog import RunFolder
 
 
 class StageError(TwistError):
@@ -46,3 +54,40 @@ def test_a_file_in_the_folders_place_is_refused(tmp_path: Path) -> None:
     with pytest.raises(StageError, match="exists and is not a folder"):
         RunFolder(tmp_path / "run", "stage", StageError, "a run").open(Settings(), False, ())
     assert (tmp_path / "run").read_text() == "not a folder"
+
+
+
+#: A tiny collection (cartpole-balance, `tiny` preset, 200 frames, 1 view of 16 px) as the code
+#: wrote it before its stages moved from ``twist_models.stages`` into ``twist_pipeline``, with
+#: the returns that code's ``twist-eval`` gave its teacher (``episodes-recorded.csv``: ``--agent
+#: oracle=…/latest.pt --agent zero --dr heldout --episodes 2``).
+RECORDED_RUN = Path(__file__).parent / "data" / "tiny-collection-run.tar.gz"
+
+
+def test_a_run_recorded_before_the_pipeline_moved_resumes_and_evaluates(tmp_path: Path) -> None:
+    with tarfile.open(RECORDED_RUN) as archive:
+        archive.extractall(tmp_path, filter="data")
+    dataset = tmp_path / "dataset"
+    run = dataset / "collect" / "collect-000"
+    recorded = pd.read_csv(tmp_path / "episodes-recorded.csv")
+    config = stored_config(dataset, "collect-000")
+    assert (config.task, config.frames, config.views) == ("cartpole-balance", 200, 1)
+
+    # Its teacher evaluates as it did: the same episodes, the same returns.
+    run_evaluation({"oracle": run / "latest.pt", "zero": "zero"},
+                   EvalConfig(task="cartpole-balance", dr="heldout", episodes=2), seeds=[0],
+                   out=tmp_path / "eval")
+    evaluated = pd.read_csv(tmp_path / "eval" / "episodes.csv")
+    assert list(evaluated["agent"]) == list(recorded["agent"])
+    assert list(evaluated["episode_seed"]) == list(recorded["episode_seed"])
+    np.testing.assert_allclose(evaluated["return"], recorded["return"], rtol=1e-3)
+
+    # And its collection resumes where it stopped, keeping its episodes and evaluations.
+    episodes = open_dataset(dataset).n_episodes
+    evaluations = pd.read_csv(run / "eval.csv")
+    resumed = collect(dataset, dataclasses.replace(config, frames=400), resume=True)
+    assert resumed.frames == 400 and verify_dataset(dataset).ok
+    assert open_dataset(dataset).n_episodes == episodes * 2
+    after = pd.read_csv(run / "eval.csv")
+    assert len(after) > len(evaluations)
+    pd.testing.assert_frame_equal(after.iloc[:len(evaluations)], evaluations)

@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 from tests.conftest import mask_overlap
-from twist_data.errors import ConfigError, PhysicsStateError, UnknownTaskError
-from twist_sim.tasks import TASKS, Dynamics, TaskEnv, task_spec
+from twist_data.errors import ConfigError
+from twist_sim.errors import PhysicsStateError, UnknownTaskError
+from twist_sim.randomisation import Dynamics
+from twist_sim.tasks import TASKS, TaskEnv, task_spec
 
 # Observation sizes of the DMC tasks as DreamerV2/DrQ report them for state-based agents.
 KNOWN_STATE_DIMS = {"cup-catch": 8, "cartpole-balance": 5, "cheetah-run": 17, "hopper-stand": 15,

@@ -102,7 +102,7 @@ def test_every_image_reader_refuses_a_stripped_dataset_naming_the_rebuild(
 def test_the_distiller_refuses_a_stripped_dataset_before_writing(stripped: Path,
                                                                   tmp_path: Path) -> None:
     from twist_models.distillation import distil_preset
-    from twist_models.stages.distil import distil
+    from twist_pipeline.distil import distil
 
     with pytest.raises(ImagesStrippedError, match=r"twist-distil needs images, but .* "
                                                   r"twist-data render .* --reproduce"):

@@ -21,9 +21,10 @@ from dm_control import mujoco
 from dm_control.rl import control
 from dm_control.suite import base
 
-from twist_data.errors import ConfigError, TaskRegistrationError, UnknownTaskError
+from twist_data.errors import ConfigError
 from twist_data.reader import open_dataset
 from twist_sim import tasks
+from twist_sim.errors import TaskRegistrationError, UnknownTaskError
 from twist_sim.tasks import TASKS, TaskEnv, TaskSpec, register_task, task_spec
 
 EXAMPLE = Path(__file__).parents[1] / "docs" / "examples" / "slider_task.py"
@@ -83,8 +84,8 @@ def test_a_users_task_is_collected_and_distilled_at_tiny_size(
         slider: str, tmp_path: Path, gl: None) -> None:
     from twist_data.verify import verify_dataset
     from twist_models.distillation import distil_preset
-    from twist_models.stages.collect import collect, collect_preset
-    from twist_models.stages.distil import distil
+    from twist_pipeline.collect import collect, collect_preset
+    from twist_pipeline.distil import distil
 
     out = tmp_path / "D"
     collect(out, collect_preset("tiny", task=slider))

@@ -1,4 +1,5 @@
-"""Exception types of the toolkit. Every message is one sentence naming the problem and the value."""
+"""Exception types of the toolkit (the simulator's own are in ``twist_sim.errors``). Every
+message is one sentence naming the problem and the value."""
 
 from __future__ import annotations
 
@@ -50,27 +51,6 @@ class ShardLockedError(TwistError):
 
 class ConfigError(TwistError, ValueError):
     """A configuration value is out of range or inconsistent with another one."""
-
-
-class UnknownTaskError(TwistError):
-    """A task name that is not one of the supported simulated tasks."""
-
-
-class TaskRegistrationError(TwistError, ValueError):
-    """A task cannot be registered: a name taken already, a spec that does not describe a
-    usable task, or a task module that does not import."""
-
-
-class PhysicsStateError(TwistError):
-    """A physics state vector that does not fit the task (wrong length, not finite)."""
-
-
-class BackgroundError(TwistError):
-    """Background images cannot be loaded (missing, empty or unreadable directory)."""
-
-
-class RenderUnavailableError(TwistError):
-    """No OpenGL context could be created for offscreen rendering."""
 
 
 class MissingExtraError(TwistError, ImportError):

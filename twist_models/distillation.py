@@ -1,6 +1,6 @@
 """The distillation objective of TWIST (Eq. 3 on windows, Eq. 4 along imagined rollouts) with
 its config, recipes and size presets, and the held-out latent agreement: the building block the
-``twist-distil`` stage (:mod:`twist_models.stages.distil`) runs.
+``twist-distil`` stage (:mod:`twist_pipeline.distil`) runs.
 
 * **Shared draws.** Teacher and student sample their categorical latents from the *same*
   uniform draws (inverse-CDF sampling): z_t^teacher and z_t^student are equal wherever the

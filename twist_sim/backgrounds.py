@@ -26,7 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from twist_data.errors import BackgroundError, ConfigError
+from twist_data.errors import ConfigError
+from twist_sim.errors import BackgroundError
 
 log = logging.getLogger(__name__)
 

@@ -25,7 +25,14 @@ from twist_data.errors import ConfigError, import_extra
 from twist_data.seeding import evaluation_episode_seed
 from twist_sim.randomisation import DR_PRESETS, dr_preset
 from twist_sim.render import DRRenderer
-from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, TASKS, TaskEnv, load_task_modules
+from twist_sim.tasks import (
+    DEFAULT_ACTION_REPEAT,
+    DEFAULT_TASK,
+    TASKS,
+    TaskEnv,
+    load_task_modules,
+    on_register,
+)
 
 gymnasium = import_extra("gymnasium", "gym", "the Gymnasium environments need")
 spaces = gymnasium.spaces
@@ -121,8 +128,8 @@ def environment_id(task: str, dr: str) -> str:
 
 
 def register_environments() -> list[str]:
-    """Register every task x DR preset with Gymnasium (done on import, and again by
-    :func:`~twist_sim.tasks.register_task`); returns the ids."""
+    """Register every task x DR preset with Gymnasium (done on import, and again for each task
+    :func:`~twist_sim.tasks.register_task` adds later); returns the ids."""
     load_task_modules()
     ids = []
     for task in TASKS:
@@ -136,3 +143,4 @@ def register_environments() -> list[str]:
 
 
 register_environments()
+on_register(lambda spec: register_environments())

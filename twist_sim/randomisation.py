@@ -18,7 +18,23 @@ import numpy as np
 
 from twist_data.errors import ConfigError
 from twist_data.schema import ParamSpec
-from twist_sim.tasks import Dynamics
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    """Per-episode dynamics randomisation (multipliers of the model's nominal values)."""
+
+    friction_scale: float = 1.0
+    """Multiplier of every geom's sliding friction."""
+    mass_scale: float = 1.0
+    """Multiplier of every body's mass (and inertia, so shapes keep their density)."""
+
+    def __post_init__(self) -> None:
+        for name in ("friction_scale", "mass_scale"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be a positive finite number, got {value}")
+
 
 #: Material groups whose colours are randomised, in the order of ``dr/colour``'s rows. These
 #: are dm_control's shared materials: agent body, end effectors, decorations, targets, floor.

@@ -39,8 +39,9 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from twist_data.errors import ConfigError, RenderUnavailableError
+from twist_data.errors import ConfigError
 from twist_sim.backgrounds import BackgroundBank, directory_bank, procedural_bank
+from twist_sim.errors import RenderUnavailableError
 from twist_sim.randomisation import COLOUR_GROUPS, VIEW_PARAMS, DRConfig, DRSampler
 from twist_sim.tasks import TaskSpec, load_environment, model_rows, restore_physics, task_spec
 

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from twist_data import errors
-from twist_data.errors import RenderUnavailableError, TwistError
+from twist_data.errors import TwistError
+from twist_sim.errors import RenderUnavailableError
 from twist_sim.randomisation import DRConfig, DRSampler
 
 _GATHER = "gather"

@@ -29,12 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from twist_data.errors import (
-    ConfigError,
-    PhysicsStateError,
-    TaskRegistrationError,
-    UnknownTaskError,
-)
+from twist_data.errors import ConfigError
+from twist_sim.errors import PhysicsStateError, TaskRegistrationError, UnknownTaskError
+from twist_sim.randomisation import COLOUR_GROUPS, Dynamics
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +103,8 @@ class TaskSpec:
 
 
 _REGISTERED: dict[str, TaskSpec] = {}
+#: Called with each task :func:`register_task` adds (:func:`on_register`).
+_LISTENERS: list[Callable[[TaskSpec], Any]] = []
 #: Every registered task by name, a read-only view that follows :func:`register_task`.
 TASKS: Mapping[str, TaskSpec] = MappingProxyType(_REGISTERED)
 
@@ -163,16 +162,19 @@ def register_task(spec: TaskSpec) -> TaskSpec:
                                     f"({_REGISTERED[spec.name].source})")
     _check_task(spec)
     _REGISTERED[spec.name] = spec
-    gym_env = sys.modules.get("twist_sim.gym_env")
-    if gym_env is not None:
-        gym_env.register_environments()
+    for listener in _LISTENERS:
+        listener(spec)
     return spec
+
+
+def on_register(listener: Callable[[TaskSpec], Any]) -> None:
+    """Call ``listener`` with every task registered from now on (the Gymnasium environments
+    register its ids)."""
+    _LISTENERS.append(listener)
 
 
 def _check_task(spec: TaskSpec) -> None:
     import mujoco
-
-    from twist_sim.randomisation import COLOUR_GROUPS
 
     try:
         env = spec.environment()
@@ -325,22 +327,6 @@ class Step:
     is_first: bool
     is_last: bool
     is_terminal: bool
-
-
-@dataclass(frozen=True)
-class Dynamics:
-    """Per-episode dynamics randomisation (multipliers of the model's nominal values)."""
-
-    friction_scale: float = 1.0
-    """Multiplier of every geom's sliding friction."""
-    mass_scale: float = 1.0
-    """Multiplier of every body's mass (and inertia, so shapes keep their density)."""
-
-    def __post_init__(self) -> None:
-        for name in ("friction_scale", "mass_scale"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ConfigError(f"{name} must be a positive finite number, got {value}")
 
 
 class TaskEnv:

@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from twist_models.stages.evaluation import TRAJECTORIES
-from twist_models.statistics import paired_difference
+from twist_pipeline.evaluation import TRAJECTORIES
+from twist_pipeline.statistics import paired_difference
 
 #: Cartpole's state layout: cart x, cos θ, sin θ, then the velocities.
 X, COS = 0, 1

@@ -30,8 +30,8 @@ from unittest import mock
 import mujoco
 import numpy as np
 
-from twist_models.acting import load_agent
-from twist_models.stages.evaluation import EvalConfig, evaluate
+from twist_pipeline.acting import load_agent
+from twist_pipeline.evaluation import EvalConfig, evaluate
 from twist_sim.randomisation import DRSampler
 from twist_sim.tasks import TaskEnv
 

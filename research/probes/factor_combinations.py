@@ -26,8 +26,8 @@ from unittest import mock
 
 import numpy as np
 
-from twist_models.acting import load_agent
-from twist_models.stages.evaluation import EvalConfig, evaluate
+from twist_pipeline.acting import load_agent
+from twist_pipeline.evaluation import EvalConfig, evaluate
 from twist_sim.randomisation import DR_PRESETS, DRConfig
 
 FACTORS = ("camera", "light", "physics")

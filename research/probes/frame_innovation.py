@@ -37,9 +37,9 @@ from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
 from twist_models.agent import Agent
 from twist_models.frame_targets import teacher_targets
-from twist_models.stages.distil import load_student
 from twist_models.student import Student
 from twist_models.teacher import find_teacher, load_teacher
+from twist_pipeline.distil import load_student
 
 
 def load_any_student(path: str) -> Student:

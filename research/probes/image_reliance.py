@@ -27,9 +27,9 @@ import torch
 from twist_data.reader import open_dataset
 from twist_data.sampler import WindowSampler
 from twist_models.losses import distillation_loss
-from twist_models.stages.distil import load_student, stored_config
 from twist_models.student import Student
 from twist_models.teacher import Teacher, load_teacher
+from twist_pipeline.distil import load_student, stored_config
 
 Batch = dict[str, torch.Tensor]
 

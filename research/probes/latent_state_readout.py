@@ -27,8 +27,8 @@ import json
 import torch
 
 from twist_data.sampler import SamplerConfig, WindowSampler
-from twist_models.stages.distil import load_student
 from twist_models.teacher import load_teacher
+from twist_pipeline.distil import load_student
 
 
 def r_squared(prediction: torch.Tensor, target: torch.Tensor) -> list[float]:

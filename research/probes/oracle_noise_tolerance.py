@@ -38,8 +38,8 @@ import json
 
 import numpy as np
 
-from twist_models.acting import StateAgent, load_agent
-from twist_models.stages.evaluation import EvalConfig, evaluate
+from twist_pipeline.acting import StateAgent, load_agent
+from twist_pipeline.evaluation import EvalConfig, evaluate
 from twist_sim.tasks import Step
 
 

@@ -24,9 +24,9 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from twist_models.acting import ImageAgent
 from twist_models.agent import Agent
-from twist_models.stages.evaluation import EvalConfig, run_evaluation
+from twist_pipeline.acting import ImageAgent
+from twist_pipeline.evaluation import EvalConfig, run_evaluation
 
 
 def amplified(agent: Agent, lean: float) -> Agent:

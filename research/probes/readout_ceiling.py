@@ -47,10 +47,10 @@ import numpy as np
 import torch
 
 from twist_data.reader import open_dataset
-from twist_models.acting import StateAgent, load_agent
 from twist_models.agent import Agent
 from twist_models.readout import StateReadOut
-from twist_models.stages.evaluation import EvalConfig, evaluate
+from twist_pipeline.acting import StateAgent, load_agent
+from twist_pipeline.evaluation import EvalConfig, evaluate
 from twist_sim.tasks import Step
 
 

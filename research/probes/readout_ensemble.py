@@ -26,11 +26,11 @@ from pathlib import Path
 
 import torch
 
-from twist_models.acting import ImageAgent
 from twist_models.agent import Agent
 from twist_models.perception import StateReading
-from twist_models.stages.evaluation import EvalConfig, run_evaluation
 from twist_models.student import Student
+from twist_pipeline.acting import ImageAgent
+from twist_pipeline.evaluation import EvalConfig, run_evaluation
 
 
 class EnsembleReading(StateReading):

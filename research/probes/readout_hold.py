@@ -36,9 +36,9 @@ from unittest import mock
 import numpy as np
 import torch
 
-from twist_models.acting import ImageAgent, load_agent
 from twist_models.perception import StateReading
-from twist_models.stages.evaluation import EvalConfig, evaluate
+from twist_pipeline.acting import ImageAgent, load_agent
+from twist_pipeline.evaluation import EvalConfig, evaluate
 from twist_sim.tasks import Step
 
 CONDITIONS = ("as-is", "mean", "median", "truth")

@@ -38,9 +38,9 @@ import torch
 
 from twist_data.reader import open_dataset
 from twist_data.sampler import heldout_episodes
-from twist_models.acting import ImageAgent, load_agent
 from twist_models.readout import StateReadOut
-from twist_models.stages.evaluation import EvalConfig, evaluate
+from twist_pipeline.acting import ImageAgent, load_agent
+from twist_pipeline.evaluation import EvalConfig, evaluate
 
 sys.path.insert(0, str(Path(__file__).parent))
 from readout_ceiling import three_read_state  # a sibling probe

@@ -25,9 +25,9 @@ from unittest import mock
 
 import torch
 
-from twist_models.acting import ImageAgent, load_agent
 from twist_models.perception import StateReading
-from twist_models.stages.evaluation import EvalConfig, evaluate
+from twist_pipeline.acting import ImageAgent, load_agent
+from twist_pipeline.evaluation import EvalConfig, evaluate
 
 sys.path.insert(0, str(Path(__file__).parent))
 from readout_hold import paired_rows

@@ -10,8 +10,8 @@ import typer
 
 from twist_cli.common import new_app, print_json, progress_bar, run_app
 from twist_models.device import resolve_device
-from twist_models.stages.baselines import KINDS, BaselineConfig, train_baseline
-from twist_models.stages.baselines import Progress as BaselineProgress
+from twist_pipeline.baselines import KINDS, BaselineConfig, train_baseline
+from twist_pipeline.baselines import Progress as BaselineProgress
 
 app = new_app()
 

@@ -34,29 +34,29 @@ import pandas as pd
 
 from twist_data.errors import ConfigError, TwistError
 from twist_data.staging import require_writable
-from twist_models.acting import REFERENCE_AGENTS
 from twist_models.config import require_positive
-from twist_models.curves import figure
 from twist_models.device import resolve_device
 from twist_models.distillation import DISTIL_PRESETS, DistilConfig, distil_preset
-from twist_models.stages.baselines import BaselineConfig, train_baseline
-from twist_models.stages.collect import (
+from twist_models.teacher import FINAL_TEACHER
+from twist_pipeline.acting import REFERENCE_AGENTS
+from twist_pipeline.baselines import BaselineConfig, train_baseline
+from twist_pipeline.collect import (
     COLLECT_PRESETS,
     CollectConfig,
     collect,
     collect_preset,
     run_dir,
 )
-from twist_models.stages.distil import distil
-from twist_models.stages.evaluation import EvalConfig, paired_episodes, run_evaluation
-from twist_models.stages.factors import FACTOR_TABLE, factor_table
-from twist_models.statistics import (
+from twist_pipeline.curves import figure
+from twist_pipeline.distil import distil
+from twist_pipeline.evaluation import EvalConfig, paired_episodes, run_evaluation
+from twist_pipeline.factors import FACTOR_TABLE, factor_table
+from twist_pipeline.statistics import (
     format_paired,
     performance_profile,
     probability_of_improvement,
     stratified_bootstrap,
 )
-from twist_models.teacher import FINAL_TEACHER
 from twist_sim.randomisation import DR_PRESETS, dr_preset
 from twist_sim.rerender import rerender_dataset
 from twist_sim.tasks import task_spec
@@ -148,7 +148,7 @@ class ReportConfig:
     factor_drs: tuple[str, ...] = ()
     """DR presets every agent is also evaluated under, on the same episodes as ``eval_dr``
     (e.g. ``heldout-camera``, ``heldout-light``: one factor each); ``report.md`` then shows
-    what each agent keeps of its ``eval_dr`` return under each (:mod:`~twist_models.stages.
+    what each agent keeps of its ``eval_dr`` return under each (:mod:`~twist_pipeline.
     factors`)."""
     eval_episodes: int = 10
     """Evaluation episodes per agent and seed (the paper: 100)."""
@@ -447,7 +447,7 @@ def markdown_table(summary: dict[str, Any], config: ReportConfig | None = None) 
 
 
 def report_factors(out: Path, config: ReportConfig, episodes: pd.DataFrame) -> pd.DataFrame:
-    """Per task, the factor table (:func:`~twist_models.stages.factors.factor_table`) of the
+    """Per task, the factor table (:func:`~twist_pipeline.factors.factor_table`) of the
     evaluations under ``config.eval_dr`` (``episodes``) and each factor preset, pooled over
     seeds, with a ``task`` column first."""
     presets = [config.eval_dr, *config.factor_drs]

@@ -11,7 +11,7 @@ import typer
 from twist_cli.common import new_app, parse_settings, print_json, progress_bar, run_app
 from twist_data.errors import ConfigError
 from twist_models.device import resolve_device
-from twist_models.stages.collect import (
+from twist_pipeline.collect import (
     COLLECT_PRESETS,
     CollectConfig,
     collect,
@@ -19,8 +19,8 @@ from twist_models.stages.collect import (
     run_dir,
     stored_config,
 )
-from twist_models.stages.collect import Progress as CollectProgress
-from twist_models.stages.runlog import recorded_config
+from twist_pipeline.collect import Progress as CollectProgress
+from twist_pipeline.runlog import recorded_config
 from twist_sim.randomisation import TRAINING_DR
 from twist_sim.tasks import DEFAULT_TASK
 

@@ -1,8 +1,11 @@
-"""Agents as an evaluation drives them, one interface over everything that acts in the
-simulator: the teacher on privileged state (the oracle), a distilled student bundle on
-images, the reference agents (doing nothing, acting at random), scripted functions of the
-step, and any policy of the Gymnasium observations; :func:`load_agent` turns what a user
-names into one of them."""
+"""Everything that acts in the simulator, for collection and evaluation alike, behind one
+interface: the teacher on privileged state (the oracle; while it trains, the collector's
+explorer, with noise and random pushes), a distilled student bundle on images (rendering its
+own view where a rollout gives it none), the reference agents (doing nothing, acting at
+random), scripted functions of the step, and any policy of the Gymnasium observations.
+Each agent is also a rollout policy of the privileged step (``agent(step)``, what
+:func:`twist_sim.rollout.record_episode` calls); :func:`load_agent` turns what a user names
+into one of them."""
 
 from __future__ import annotations
 
@@ -21,6 +24,7 @@ from twist_models.agent import Agent, AgentState
 from twist_models.checkpoint import read_checkpoint
 from twist_models.rssm import require_posterior_read
 from twist_models.teacher import Teacher, teacher_from_checkpoint
+from twist_sim.render import DRRenderer
 from twist_sim.tasks import Step, TaskEnv
 
 
@@ -47,22 +51,51 @@ def posterior_draws(stoch: int, posterior: str) -> tuple[int, ...] | None:
     return (1, stoch, 1) if posterior == "sample" else None
 
 
+class RandomPushes:
+    """Random shoves of one episode: on each step without a push under way one starts with
+    probability 1 / ``every``, lasts 1..``longest`` steps (uniform) and holds one action
+    drawn uniform in [-1, 1]^A. Seeded, so an episode's pushes are reproducible."""
+
+    def __init__(self, every: int, longest: int, action_dim: int, seed: int) -> None:
+        self.every, self.longest, self.action_dim = every, longest, action_dim
+        self.rng = np.random.default_rng(seed)
+        self.left = 0
+        self.action = np.zeros(action_dim, np.float32)
+
+    def __call__(self) -> np.ndarray | None:
+        """This step's push action, or None when the policy acts."""
+        if self.left == 0 and self.rng.random() < 1.0 / self.every:
+            self.left = int(self.rng.integers(1, self.longest + 1))
+            self.action = self.rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+        if self.left == 0:
+            return None
+        self.left -= 1
+        return self.action
+
+
 class StateAgent:
-    """The teacher acting on privileged state with its actor's mode: the oracle."""
+    """The teacher acting on privileged state: the oracle (its actor's mode), or, while it
+    trains, the collector's explorer (its actor sampled, with noise and random pushes)."""
 
     uses_images = False
 
     def __init__(self, teacher: Teacher, task: str | None, device: str = "cpu",
-                 action_repeat: int | None = None, posterior: str = "sample") -> None:
+                 action_repeat: int | None = None, posterior: str = "sample",
+                 explore: bool = False, noise: float = 0.0,
+                 pushes: RandomPushes | None = None) -> None:
         """``posterior``: how the teacher takes z from its posterior; ``sample`` as it was
-        trained (``twist-eval``'s oracle always samples: it is the normaliser)."""
+        trained (``twist-eval``'s oracle always samples: it is the normaliser). ``explore``
+        samples the actor instead of taking its mode; ``noise`` adds Gaussian noise of that
+        std to each action (clipped to [-1, 1]); while one of ``pushes`` is under way, the
+        push's action is taken instead. The filter always sees the action taken."""
         require_posterior_read(posterior)
         self.posterior = posterior
-        self.teacher = teacher.to_device(device).eval()
+        self.teacher = teacher.to_device(device)
         self.action_dim = teacher.config.world_model.action_dim
         self.device = device
         self.task = task
         self.action_repeat = action_repeat
+        self.explore, self.noise, self.pushes = explore, noise, pushes
         self.reset()
 
     def reset(self) -> None:
@@ -70,6 +103,10 @@ class StateAgent:
 
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
         return self.act_batch([step], None, None)[0]
+
+    def __call__(self, step: Step) -> np.ndarray:
+        """The agent as a rollout policy of the privileged step."""
+        return self.act(step, None)
 
     @property
     def batchable(self) -> bool:
@@ -91,11 +128,18 @@ class StateAgent:
         """One step of ``len(steps)`` episodes at once, ``uniform`` [N, S, 1] the posterior's
         draws of each -> actions [N, A]."""
         state = torch.as_tensor(np.stack([s.state for s in steps]), device=self.device).float()
+        # Only a first step needs is_first's masking (~100 us of the ~1 ms acting step); a
+        # check inside the RSSM would cost training a device sync per step instead.
         first = (torch.tensor([s.is_first for s in steps], device=self.device)
                  if steps[0].is_first else None)
         action, self._latent = self.teacher.policy(
-            state, self._latent, self._previous, first, explore=False, read=self.posterior,
-            uniform=None if uniform is None else uniform.to(self.device))
+            state, self._latent, self._previous, first, explore=self.explore,
+            read=self.posterior, uniform=None if uniform is None else uniform.to(self.device))
+        if self.noise:
+            action = (action + self.noise * torch.randn_like(action)).clamp(-1.0, 1.0)
+        push = self.pushes() if self.pushes is not None else None
+        if push is not None:
+            action = torch.as_tensor(push, device=self.device).expand_as(action).clone()
         self._previous = action
         return action.cpu().numpy()
 
@@ -120,6 +164,19 @@ class ImageAgent:
     def act(self, step: Step, image: np.ndarray | None) -> np.ndarray:
         action, self._state = self.agent.act(image, self._state, posterior=self.posterior)
         return action
+
+    def rendering(self, renderer: DRRenderer, seed: int) -> Callable[[Step], np.ndarray]:
+        """The agent as a rollout policy of the privileged step for one episode: it renders
+        each step itself (one view under ``renderer``'s DR, drawn from ``seed``) and acts on
+        that image (the collector's episodes of a distilled student)."""
+        sampler = renderer.sampler(seed)
+        sampler.begin_episode(seed)
+        self.reset()
+
+        def act(step: Step) -> np.ndarray:
+            return self.act(step, renderer.render(step.physics, sampler.sample())[0])
+
+        return act
 
     batchable = True
 
@@ -253,8 +310,8 @@ def load_agent(path: str | os.PathLike[str], device: str = "cpu", task: str | No
     checkpoint = read_checkpoint(path)
     if checkpoint.kind == "teacher":
         collect = checkpoint.extra.get("collect") or {}
-        return StateAgent(teacher_from_checkpoint(checkpoint, source=str(path)),
-                          collect.get("task"), device, collect.get("action_repeat"))
+        teacher = teacher_from_checkpoint(checkpoint, source=str(path)).eval()
+        return StateAgent(teacher, collect.get("task"), device, collect.get("action_repeat"))
     if checkpoint.kind == "agent":
         return ImageAgent(Agent.from_checkpoint(checkpoint, device), posterior)
     kind = checkpoint.kind

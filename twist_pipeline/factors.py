@@ -24,8 +24,8 @@ import numpy as np
 import pandas as pd
 
 from twist_data.errors import ConfigError
-from twist_models.acting import EvalAgent
-from twist_models.stages.evaluation import EvalConfig, paired_episodes, run_evaluation
+from twist_pipeline.acting import EvalAgent
+from twist_pipeline.evaluation import EvalConfig, paired_episodes, run_evaluation
 
 FACTOR_COLUMNS = ("agent", "dr", "episodes", "mean", "sem", "ratio", "paired", "paired_sem",
                   "better")

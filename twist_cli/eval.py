@@ -15,14 +15,14 @@ from rich.table import Table
 from twist_cli.common import new_app, out, parse_list, print_json, progress_bar, run_app
 from twist_data.errors import ConfigError
 from twist_data.staging import require_writable
-from twist_models.acting import EvalAgent, PolicyAgent, StateAgent, is_reference, load_agent
 from twist_models.device import resolve_device
 from twist_models.rssm import require_posterior_read
-from twist_models.stages.evaluation import EvalConfig, agents_setting, run_evaluation
-from twist_models.stages.factors import evaluate_factors
-from twist_models.stages.learning_curve import FLOOR, ORACLE, evaluate_snapshots
-from twist_models.stages.learning_curve import snapshots as snapshot_agents
-from twist_models.statistics import format_paired
+from twist_pipeline.acting import EvalAgent, PolicyAgent, StateAgent, is_reference, load_agent
+from twist_pipeline.evaluation import EvalConfig, agents_setting, run_evaluation
+from twist_pipeline.factors import evaluate_factors
+from twist_pipeline.learning_curve import FLOOR, ORACLE, evaluate_snapshots
+from twist_pipeline.learning_curve import snapshots as snapshot_agents
+from twist_pipeline.statistics import format_paired
 from twist_sim.tasks import DEFAULT_ACTION_REPEAT
 
 app = new_app()

@@ -24,10 +24,10 @@ import torch
 
 from twist_data.errors import TwistError
 from twist_data.seeding import evaluation_episode_seed
-from twist_models.acting import ImageAgent, StateAgent, load_agent
 from twist_models.agent import AgentState
-from twist_models.curves import figure
-from twist_models.stages.evaluation import EvalConfig, evaluation_envs, run_evaluation
+from twist_pipeline.acting import ImageAgent, StateAgent, load_agent
+from twist_pipeline.curves import figure
+from twist_pipeline.evaluation import EvalConfig, evaluation_envs, run_evaluation
 
 SNAPSHOT = re.compile(r"agent-(\d{8})\.pt")
 ORACLE, FLOOR = "oracle", "zero"
@@ -73,7 +73,7 @@ def evaluate_snapshots(run: str | os.PathLike[str], config: EvalConfig,
                        on_progress: Callable[[int, int], None] | None = None) -> pd.DataFrame:
     """Evaluate every snapshot of the distillation run ``run``, its teacher (``teacher``: the
     run's own by default) and the zero-action floor on the same episodes into ``out``
-    (:func:`~twist_models.stages.evaluation.run_evaluation`'s files), measure each snapshot's
+    (:func:`~twist_pipeline.evaluation.run_evaluation`'s files), measure each snapshot's
     :func:`closed_loop_agreement` over the first ``agreement_episodes`` of them (0: none), then
     write ``curve.csv`` (:data:`CURVE_COLUMNS`: per agent its mean, spread and, for
     snapshots, the paired difference from the teacher and the agreement) and ``curve.png``;

@@ -51,7 +51,7 @@ from twist_models.config import (
 )
 from twist_models.device import COMPILE_SETTINGS, compile_mode, resolve_device
 from twist_models.dreamer import Dreamer
-from twist_models.stages.runlog import RunFolder, TensorBoardLog, append_csv
+from twist_pipeline.runlog import RunFolder, TensorBoardLog, append_csv
 
 log = logging.getLogger(__name__)
 

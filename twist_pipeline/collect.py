@@ -64,18 +64,18 @@ from twist_models.config import (
     teacher_preset,
     to_json,
 )
-from twist_models.curves import plot_learning_curves
 from twist_models.device import COMPILE_SETTINGS, compile_mode, resolve_device
 from twist_models.networks import single_threaded
-from twist_models.policies import RandomPushes, student_policy, teacher_policy
-from twist_models.stages.runlog import RunFolder, TensorBoardLog, append_csv, check_output
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teacher, save_teacher
-from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, dr_preset
+from twist_pipeline.acting import ImageAgent, RandomPushes, StateAgent
+from twist_pipeline.curves import plot_learning_curves
+from twist_pipeline.runlog import RunFolder, TensorBoardLog, append_csv, check_output
+from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, Dynamics, dr_preset
 from twist_sim.render import DRRenderer, FrameRenderer
 from twist_sim.render_process import RenderProcess
 from twist_sim.rerender import pair_instant
 from twist_sim.rollout import Policy, random_policy, record_episode, simulated_spec
-from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Dynamics, TaskEnv, task_spec
+from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, TaskEnv, task_spec
 
 log = logging.getLogger(__name__)
 
@@ -649,13 +649,13 @@ class Collector:
             policy, name, step = random_policy(self.env.action_dim, episode_seed), "random", -1
         elif frozen and self.student is not None:
             agent, own_view = self.student
-            policy = student_policy(agent, own_view, derived_seed(episode_seed, 8))
+            policy = ImageAgent(agent).rendering(own_view, derived_seed(episode_seed, 8))
             name, step = "student", -1
         else:
             pushes = (RandomPushes(c.push_every, c.push_steps, self.env.action_dim,
                              derived_seed(episode_seed, 7)) if frozen and c.push_every else None)
-            policy = teacher_policy(self.teacher, self.env.action_dim, self.device,
-                                    noise=c.frozen_noise if frozen else 0.0, pushes=pushes)
+            policy = StateAgent(self.teacher, None, self.device, explore=True,
+                                noise=c.frozen_noise if frozen else 0.0, pushes=pushes)
             name, step = "teacher", int(self.teacher.step)
         with single_threaded():
             episode, info = record_episode(self.env, self.renderer, self.dr_sampler, policy,
@@ -797,8 +797,7 @@ class Collector:
         """Return of evaluation episode ``index`` (nominal dynamics) of ``policy``, by default
         the teacher's mode action on states (random actions before it first acts)."""
         if policy is None:
-            policy = (teacher_policy(self.teacher, self.env.action_dim, self.device,
-                                     explore=False)
+            policy = (StateAgent(self.teacher, None, self.device)
                       if self.frames >= self.config.prefill_frames
                       else random_policy(self.env.action_dim, index))
         step = self.eval_env.reset(seed=derived_seed(self.seed, 1 << 30, index),

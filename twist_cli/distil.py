@@ -13,9 +13,9 @@ from twist_data.errors import ConfigError
 from twist_models.config import replace_fields
 from twist_models.device import resolve_device
 from twist_models.distillation import DISTIL_PRESETS, RECIPES, DistilConfig, distil_preset
-from twist_models.stages.distil import Progress as DistilProgress
-from twist_models.stages.distil import distil, initialise_distributed, stored_config
-from twist_models.stages.runlog import recorded_config
+from twist_pipeline.distil import Progress as DistilProgress
+from twist_pipeline.distil import distil, initialise_distributed, stored_config
+from twist_pipeline.runlog import recorded_config
 
 app = new_app()
 

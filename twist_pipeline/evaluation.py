@@ -27,19 +27,20 @@ import numpy as np
 import pandas as pd
 import torch
 
-from twist_data.errors import BackgroundError, ConfigError, TwistError
+from twist_data.errors import ConfigError, TwistError
 from twist_data.export import episode_strip, write_video
 from twist_data.seeding import evaluation_episode_seed
 from twist_data.staging import require_writable
-from twist_models.acting import EvalAgent, agent_kind, load_agent
 from twist_models.config import require_positive, to_json
-from twist_models.curves import plot_returns
 from twist_models.device import resolve_device
 from twist_models.networks import single_threaded
 from twist_models.rssm import require_posterior_read
-from twist_models.stages.runlog import append_csv, refuse_resume, resume_conflicts
-from twist_models.statistics import PairedDifference, paired_difference, stratified_bootstrap
+from twist_pipeline.acting import EvalAgent, agent_kind, load_agent
+from twist_pipeline.curves import plot_returns
+from twist_pipeline.runlog import append_csv, refuse_resume, resume_conflicts
+from twist_pipeline.statistics import PairedDifference, paired_difference, stratified_bootstrap
 from twist_sim.backgrounds import background_files
+from twist_sim.errors import BackgroundError
 from twist_sim.randomisation import DR_PRESETS, DRConfig, dr_preset
 from twist_sim.tasks import DEFAULT_ACTION_REPEAT, DEFAULT_TASK, Step, task_spec
 from twist_sim.vector_env import EnvWorkers, LocalEnvs

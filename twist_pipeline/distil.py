@@ -64,7 +64,6 @@ from twist_models.config import (
     student_preset,
     to_json,
 )
-from twist_models.curves import plot_agreement
 from twist_models.device import compile_mode, precision_autocast, resolve_device
 from twist_models.distillation import (
     AUTO_MIRROR,
@@ -93,11 +92,6 @@ from twist_models.readout import (
     training_frames,
     typical,
 )
-from twist_models.stages.runlog import (
-    RunFolder,
-    TensorBoardLog,
-    append_csv,
-)
 from twist_models.student import (
     Student,
     copy_teacher_dynamics,
@@ -105,6 +99,12 @@ from twist_models.student import (
     freeze_dynamics,
 )
 from twist_models.teacher import Teacher, find_teacher, load_teacher
+from twist_pipeline.curves import plot_agreement
+from twist_pipeline.runlog import (
+    RunFolder,
+    TensorBoardLog,
+    append_csv,
+)
 from twist_sim.tasks import state_mirror
 
 log = logging.getLogger(__name__)

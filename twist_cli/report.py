@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from twist_cli.common import new_app, out, parse_list, run_app
-from twist_models.stages.report import AGENTS, ReportConfig, build_report, run_reproduction
+from twist_pipeline.report import AGENTS, ReportConfig, build_report, run_reproduction
 
 app = new_app()
 
