@@ -64,6 +64,14 @@ def test_the_pages_a_user_reads_stay_short(page: str, most: int) -> None:
     assert not long, f"{page}: lines {long} are over 200 characters"
 
 
+@pytest.mark.parametrize("page", [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))],
+                         ids=lambda page: page.name)
+def test_no_line_of_the_docs_is_over_200_characters(page: Path) -> None:
+    """Table rows included: a row too wide to read is a row whose detail belongs below it."""
+    long = [i + 1 for i, line in enumerate(page.read_text().splitlines()) if len(line) > 200]
+    assert not long, f"{page.name}: lines {long} are over 200 characters"
+
+
 def test_no_development_history_in_tracked_files() -> None:
     listed = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True)
     if listed.returncode != 0:
