@@ -420,8 +420,8 @@ def test_a_student_acts_instead_of_the_frozen_teacher_on_its_own_renders(
     seen: list[tuple[np.ndarray, np.ndarray]] = []
     original = Agent.act
 
-    def spy(self, image, state=None, explore=False):
-        action, state = original(self, image, state, explore)
+    def spy(self, image, state=None, **options):
+        action, state = original(self, image, state, **options)
         seen.append((np.asarray(image), action))
         return action, state
 

@@ -26,3 +26,15 @@ class BackgroundError(TwistError):
 
 class RenderUnavailableError(TwistError):
     """No OpenGL context could be created for offscreen rendering."""
+
+
+def error_type(name: str) -> type[TwistError] | None:
+    """The toolkit's exception class called ``name`` (the simulator's or the dataset's), or
+    None: how a child process's failure is raised again as the parent's own type."""
+    from twist_data import errors as dataset_errors
+
+    for module in (globals(), vars(dataset_errors)):
+        kind = module.get(name)
+        if isinstance(kind, type) and issubclass(kind, TwistError):
+            return kind
+    return None

@@ -30,9 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from twist_data import errors
 from twist_data.errors import TwistError
-from twist_sim.errors import RenderUnavailableError
+from twist_sim.errors import RenderUnavailableError, error_type
 from twist_sim.randomisation import DRConfig, DRSampler
 
 _GATHER = "gather"
@@ -119,8 +118,8 @@ class RenderProcess:
             name, message = payload
             # The child's own error type when it is one of ours (a bad background folder is
             # a BackgroundError however it is rendered), else "rendering is unavailable".
-            kind = getattr(errors, name, None)
-            if isinstance(kind, type) and issubclass(kind, TwistError):
+            kind = error_type(name)
+            if kind is not None:
                 raise kind(message)
             raise RenderUnavailableError(f"the render process for {task!r} could not start: "
                                          f"{name}: {message}")

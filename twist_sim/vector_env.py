@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from twist_data import errors
 from twist_data.errors import ConfigError, TwistError
+from twist_sim.errors import error_type
 from twist_sim.randomisation import DRConfig
 from twist_sim.tasks import Step, TaskEnv
 
@@ -175,8 +175,8 @@ class EnvWorkers:
                                      f"{code})") from None
             if status == "error":
                 name, message = payload
-                kind = getattr(errors, name, None)
-                if isinstance(kind, type) and issubclass(kind, TwistError):
+                kind = error_type(name)
+                if kind is not None:
                     raise kind(message)
                 raise EnvWorkerError(f"environment worker {worker} failed: {name}: {message}")
             replies.append(payload)
