@@ -49,7 +49,7 @@ from twist_models.readout import (
 )
 from twist_models.student import Student, copy_teacher_filter
 from twist_models.teacher import Teacher, save_teacher
-from twist_pipeline import distil as distill_stage
+from twist_pipeline import readout_recipe
 from twist_pipeline.curves import student_progress
 from twist_pipeline.distil import DistilError, distil, load_student, stored_config
 
@@ -699,10 +699,8 @@ def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Pat
         distil_preset("tiny", "dense", readout_mirror="average")
     with pytest.raises(ConfigError, match=r"a sign \(\+1 or -1\) per read component \(3\)"):
         dataclasses.replace(_paired(inputs[3]), mirror=(-1.0, 1.0))
-    from twist_pipeline import distil as stage
-
-    monkeypatch.setattr(stage, "state_mirror", lambda task: ())
-    with pytest.raises(DistilError, match="task 'synthetic-cartpole' declares no mirror "
+    monkeypatch.setattr(readout_recipe, "state_mirror", lambda task: ())
+    with pytest.raises(ConfigError, match="task 'synthetic-cartpole' declares no mirror "
                                           "symmetry for its 5-component state"):
         distil(inputs[0], tmp_path / "run", distil_preset("tiny", "readout",
                                                           readout_mirror="average"),
@@ -712,13 +710,11 @@ def test_mirroring_is_refused_for_other_students_and_tasks(inputs, tmp_path: Pat
 
 def test_auto_mirroring_follows_the_tasks_declaration(inputs, tmp_path: Path,
                                                      monkeypatch) -> None:
-    from twist_pipeline import distil as stage
-
     dataset, teacher_path, _, _ = inputs
     config = distil_preset("tiny", "readout", readout_mirror="auto", frame_eval_every=2)
     declared = distil(dataset, tmp_path / "declared", config, teacher=teacher_path)
     assert Agent.load(declared.agent).config.student.readout.mirror == (-1.0, 1.0, -1.0)
-    monkeypatch.setattr(stage, "state_mirror", lambda task: ())
+    monkeypatch.setattr(readout_recipe, "state_mirror", lambda task: ())
     undeclared = distil(dataset, tmp_path / "undeclared", config, teacher=teacher_path)
     assert Agent.load(undeclared.agent).config.student.readout.mirror == ()
 
@@ -749,7 +745,7 @@ def test_a_resume_accepts_gains_measured_again_to_the_last_digits_only(
     config = distil_preset("tiny", "readout")
     first = distil(dataset, tmp_path / "run", config, teacher=teacher_path)
     gains = Agent.load(first.agent).config.student.readout.gains
-    measure = distill_stage._pair_readout
+    measure = readout_recipe.pair_readout
 
     def measured_again(factor: float):
         def pair(*args, **kwargs) -> ReadOutConfig:
@@ -758,12 +754,12 @@ def test_a_resume_accepts_gains_measured_again_to_the_last_digits_only(
         return pair
 
     longer = dataclasses.replace(config, frame_steps=config.frame_steps + 2)
-    monkeypatch.setattr(distill_stage, "_pair_readout", measured_again(1 + 1e-13))
+    monkeypatch.setattr(readout_recipe, "pair_readout", measured_again(1 + 1e-13))
     summary = distil(dataset, tmp_path / "run", longer, teacher=teacher_path, resume=True)
     assert Agent.load(summary.agent).config.student.readout.gains == gains
     assert json.loads((tmp_path / "run" / "config.json").read_text()
                       )["student"]["readout"]["gains"] == list(gains)
-    monkeypatch.setattr(distill_stage, "_pair_readout", measured_again(1 + 1e-3))
+    monkeypatch.setattr(readout_recipe, "pair_readout", measured_again(1 + 1e-3))
     with pytest.raises(DistilError, match="the student's sizes differ"):
         distil(dataset, tmp_path / "run", longer, teacher=teacher_path, resume=True)
 

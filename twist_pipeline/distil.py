@@ -58,7 +58,6 @@ from twist_models.checkpoint import (
     save_checkpoint,
 )
 from twist_models.config import (
-    ReadOutConfig,
     StudentConfig,
     from_json,
     student_preset,
@@ -66,11 +65,9 @@ from twist_models.config import (
 )
 from twist_models.device import compile_mode, precision_autocast, resolve_device
 from twist_models.distillation import (
-    AUTO_MIRROR,
     KEYS,
     DistilConfig,
     Distillation,
-    ReadOutStage,
     compiled_objective,
     frame_loss,
     latent_agreement,
@@ -84,28 +81,19 @@ from twist_models.frame_targets import (
     teacher_latent_before,
     teacher_targets,
 )
-from twist_models.readout import (
-    episode_constants,
-    motion_standardisation,
-    pair_velocities,
-    robust_standardisation,
-    training_frames,
-    typical,
-)
 from twist_models.student import (
     Student,
     copy_teacher_dynamics,
-    copy_teacher_filter,
     freeze_dynamics,
 )
 from twist_models.teacher import Teacher, find_teacher, load_teacher
+from twist_pipeline import readout_recipe
 from twist_pipeline.curves import plot_agreement
 from twist_pipeline.runlog import (
     RunFolder,
     TensorBoardLog,
     append_csv,
 )
-from twist_sim.tasks import state_mirror
 
 log = logging.getLogger(__name__)
 
@@ -192,14 +180,14 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
     data = _open_inputs(dataset_path, config)
     teacher_path = Path(teacher) if teacher is not None else find_teacher(dataset_path)
     teacher_model, _ = load_teacher(teacher_path, data.spec.state_dim, data.spec.action_dim)
-    rows = _training_rows(data, config) if config.readout else None
+    rows = readout_recipe.training_rows(data, config) if config.readout else None
+    readout = (readout_recipe.pair_readout(data, rows, teacher_model,
+                                           readout_recipe.mirror_mode(config, data),
+                                           config.readout_stage)
+               if rows is not None else None)
     student_config = student_preset(config.student, teacher_model.config, data.spec.image_height,
                                     config.frames, config.encoder_norm,
-                                    state_head=config.weights.state > 0,
-                                    readout=_pair_readout(data, rows, teacher_model,
-                                                          _mirror_mode(config, data),
-                                                          config.readout_stage)
-                                    if rows is not None else None)
+                                    state_head=config.weights.state > 0, readout=readout)
     spec = data.spec
     require_memory(config.batch_size * (config.length + config.window_context)
                    * int(np.prod(spec.image_shape)) * 4,
@@ -236,61 +224,6 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
     return data
 
 
-def _training_rows(data: MatchingDataset, config: DistilConfig) -> FrameRows:
-    return FrameRows.of(data, np.flatnonzero(~heldout_episodes(data.n_episodes,
-                                                               config.schedule.holdout_every)))
-
-
-def _pair_readout(data: MatchingDataset, rows: FrameRows, teacher: Teacher, mirror: str,
-                  stage: ReadOutStage) -> ReadOutConfig:
-    """What a read-out student reads and derives, measured on D's training steps (velocities
-    paired at ``stage.min_pairing``; components constant within episodes pooled where
-    ``stage.pool`` asks), the mirror signs of what it reads where ``mirror``
-    (``stage.mirror`` resolved) asks for them, and how far it leans the angles it reads
-    (``stage.lean``)."""
-    wm = teacher.config.world_model
-    states, is_first = rows.state.numpy(), rows.steps == rows.episode_start
-    readout = pair_velocities(states, is_first, data.spec.state_layout, wm.state_mlp,
-                              data.spec.task, hidden=wm.state_hidden,
-                              min_pairing=stage.min_pairing)
-    pooled = (episode_constants(states, is_first, readout.poolable()) if stage.pool == "constant"
-              else ())
-    if pooled:
-        log.info("the read-out pools components %s over each episode: D's episodes never "
-                 "change them", list(pooled))
-    readout = dataclasses.replace(readout, lean=stage.lean, pooled=pooled, symlog=wm.symlog)
-    if readout.moving:  # refused before anything is written, naming the command that adds them
-        # No lower bar is offered: cheetah's root speed correlates at 0.43 with a change that
-        # is not its rate, panda-push's block height at 0.47 with its own.
-        data.require_pairs(f"the readout recipe on {data.spec.task} (velocity components "
-                           f"{list(readout.moving)} pair with no component one frame shows: "
-                           f"best correlations {list(readout.moving_pairing)}, below "
-                           f"readout_stage.min_pairing {stage.min_pairing})")
-    if mirror == "none":
-        return readout
-    signs = _mirror(data)
-    return dataclasses.replace(readout, mirror=tuple(signs[i] for i in readout.read))
-
-
-def _mirror_mode(config: DistilConfig, data: MatchingDataset) -> str:
-    """``readout_stage.mirror`` for this D: ``auto`` resolved by whether its task declares a
-    mirror."""
-    if config.readout_stage.mirror == "auto":
-        return AUTO_MIRROR if state_mirror(data.spec.task) else "none"
-    return config.readout_stage.mirror
-
-
-def _mirror(data: MatchingDataset) -> tuple[float, ...]:
-    """The sign of each of D's state components in the mirrored view (``TaskSpec.mirror``);
-    a task that declares none, or one whose state D records at another length, is refused."""
-    task = data.spec.task
-    signs = state_mirror(task)
-    if len(signs) != data.spec.state_dim:
-        raise DistilError(f"task {task!r} declares no mirror symmetry for its "
-                          f"{data.spec.state_dim}-component state; set readout_stage.mirror=none")
-    return signs
-
-
 def _run_folder(out: Path) -> RunFolder:
     return RunFolder(out, "distil", DistilError, "a distillation run")
 
@@ -324,17 +257,6 @@ def same_student(a: StudentConfig, b: StudentConfig) -> bool:
         a, readout=dataclasses.replace(a.readout, gains=b.readout.gains)) == b
 
 
-#: States the teacher's sensitivity is averaged over (``readout_stage.units=teacher``).
-UNITS_SAMPLE = 2048
-
-
-def _units_sample(states: torch.Tensor, seed: int) -> torch.Tensor:
-    """A seeded draw of ``UNITS_SAMPLE`` of D's states [N, S], the same on resume."""
-    rows = np.random.default_rng(derived_seed(seed, 11)).choice(
-        len(states), min(UNITS_SAMPLE, len(states)), replace=False)
-    return states[torch.as_tensor(np.sort(rows))]
-
-
 def _rank_and_world() -> tuple[int, int]:
     dist = torch.distributed
     if dist.is_available() and dist.is_initialized():
@@ -345,6 +267,165 @@ def _rank_and_world() -> tuple[int, int]:
 def _to_device(batch: Mapping[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
     return {k: torch.as_tensor(batch[k]).to(device, non_blocking=True) for k in (*KEYS, PAIR_IMAGE)
             if k in batch}
+
+
+class DistilInputs:
+    """What a distillation run reads: the teacher's targets on D's training steps (recipes
+    that need them), D's held-out windows, its training windows and single frames, decoded
+    or from a copy of D on the device (``compute.resident_data``)."""
+
+    def __init__(self, dataset_path: Path, data: MatchingDataset, config: DistilConfig,
+                 teacher: Teacher, device: torch.device, rank: int, world: int,
+                 pairs: bool) -> None:
+        self.dataset_path, self.data, self.config, self.teacher = dataset_path, data, config, teacher
+        self.device, self.rank, self.world, self.pairs = device, rank, world, pairs
+        self.targets: TeacherTargets | None = None
+        if config.needs_teacher_targets:
+            train = np.flatnonzero(~heldout_episodes(data.n_episodes,
+                                                     config.schedule.holdout_every))
+            self.targets = teacher_targets(teacher, data, train, seed=derived_seed(config.seed, 6))
+
+    def heldout_batch(self) -> dict[str, torch.Tensor]:
+        """The held-out windows every evaluation reads (every ``holdout_every``-th episode)."""
+        c = self.config
+        try:
+            sampler = WindowSampler(self.data, c.sampler("heldout", derived_seed(c.seed, 1),
+                                                         c.schedule.heldout_windows, self.pairs))
+        except SamplerConfigError as exc:  # damage is its own error, not "no windows"
+            raise DistilError(f"no held-out windows (every {c.schedule.holdout_every}th episode is held "
+                              f"out): {exc}; lower schedule.holdout_every or the window length") from None
+        return split_context(_to_device(sampler.batch(), self.device), c.window_context)
+
+    def windows(self, updates: int) -> Iterator[dict[str, torch.Tensor]]:
+        """Training windows; a resumed run draws from a stream seeded by its update count."""
+        c = self.config
+        sampler = c.sampler("train", derived_seed(c.seed, 3, updates), pairs=self.pairs)
+        try:
+            if self.resident(sampler.keys):
+                return iter(ResidentWindows(self.data, sampler, self.device, self.rank,
+                                            self.world))
+            windows = WindowDataset(self.dataset_path, sampler)
+            loader = DataLoader(windows, batch_size=None, num_workers=c.compute.workers,
+                                pin_memory=self.device.type == "cuda",
+                                persistent_workers=c.compute.workers > 0,
+                                prefetch_factor=4 if c.compute.workers else None)
+        except SamplerConfigError as exc:
+            raise DistilError(f"no training windows: {exc}") from None
+        return iter(loader)
+
+    def window_batch(self, windows: Mapping[str, Any]) -> dict[str, torch.Tensor]:
+        """A training batch of ``windows`` on the device, split at the context, with the
+        teacher's latent before each window where it starts the student's."""
+        context = self.config.window_context
+        batch = split_context(_to_device(windows, self.device), context)
+        if self.config.window_start == "teacher":
+            starts = torch.as_tensor(windows["start"]).cpu().numpy() + context
+            start = teacher_latent_before(self.teacher, self.targets, starts)
+            batch.update(start_deter=start["deter"], start_stoch=start["stoch"])
+        return batch
+
+    def frame_batches(self, rows: FrameRows, frame_updates: int) -> FrameBatches:
+        """The first stage's batches of single frames of ``rows``, seeded by the updates
+        done."""
+        c = self.config
+        resident = self.resident(("image", PAIR_IMAGE) if self.pairs else ("image",))
+        images = resident_images(self.data, self.device) if resident else None
+        pair_images = (resident_images(self.data, self.device, PAIR_IMAGE)
+                       if resident and self.pairs else None)
+        return FrameBatches(self.data, rows, c.frame_batch, c.frames, c.view,
+                            seed=derived_seed(c.seed, 7, frame_updates, self.rank),
+                            images=images, pairs=self.pairs, pair_images=pair_images)
+
+    def resident(self, keys: tuple[str, ...]) -> bool:
+        """Whether training windows or frames come from a copy of D on the device
+        (``resident_data``)."""
+        choice = self.config.compute.resident_data
+        if choice != "auto":
+            return choice == "on"
+        if self.device.type != "cuda":
+            return False
+        free, _ = torch.cuda.mem_get_info(self.device)
+        need = resident_bytes(self.data, keys)
+        log.info("D's copy needs %.2f GiB on %s, %.2f GiB free", need / 2**30, self.device,
+                 free / 2**30)
+        return need <= free / 2
+
+
+class _Meter:
+    """A stage's training time and metric sums: per evaluation interval and for the run
+    (evaluation and checkpoints excluded, so updates/s is the steady-state rate)."""
+
+    def __init__(self) -> None:
+        self.run = {"train": 0.0, "wait": 0.0, "done": 0}
+        self.wall = time.perf_counter()
+        self.synced = 0.0
+        self.restart()
+
+    def restart(self) -> None:
+        self.interval = {"train": 0.0, "wait": 0.0, "done": 0}
+        self.sums: dict[str, torch.Tensor] = {}
+
+    def add(self, spent: float, waited: float) -> None:
+        for record in (self.interval, self.run):
+            record["train"] += spent
+            record["wait"] += waited
+            record["done"] += 1
+
+    def means(self) -> dict[str, float]:
+        """The interval's mean of each metric; the wait for the device to finish counts as
+        training time."""
+        tick = time.perf_counter()
+        means = {k: float(v) / self.interval["done"] for k, v in self.sums.items()}
+        self.synced = time.perf_counter() - tick
+        for record in (self.interval, self.run):
+            record["train"] += self.synced
+        return means
+
+
+def _optimiser(student: Student, config: DistilConfig) -> torch.optim.Optimizer:
+    o = config.optim
+    return torch.optim.AdamW(student.parameters(), config.lr, eps=o.eps,
+                             weight_decay=o.weight_decay)
+
+
+def _start_student(config: DistilConfig, student_config: StudentConfig, teacher: Teacher,
+                   rows: FrameRows | None, latest: Path, rank: int
+                   ) -> tuple[Student, torch.optim.Optimizer, dict[str, Any]]:
+    """The run's student and optimiser, restored from ``latest`` where it exists (its update
+    counters, seconds, first held-out figures and torch's stream as recorded), else new (a
+    read-out student from the teacher's own filter; ``copy_dynamics``: the teacher's RSSM)."""
+    torch.manual_seed(config.seed)
+    student = Student(student_config)
+    optimiser = _optimiser(student, config)
+    counters: dict[str, Any] = {"updates": 0, "frame_updates": 0, "seconds": 0.0,
+                                "heldout_first": {}}
+    if latest.exists():
+        checkpoint = read_checkpoint(latest, kind="student")
+        restore(checkpoint, student, student_config, {"student": optimiser})
+        counters = {"updates": checkpoint.counters["updates"],
+                    "frame_updates": checkpoint.counters.get("frame_updates", 0),
+                    "seconds": float(checkpoint.extra.get("seconds", 0.0)),
+                    "heldout_first": checkpoint.extra.get("heldout_first", {})}
+        torch.set_rng_state(torch.tensor(checkpoint.extra["torch_rng"], dtype=torch.uint8))
+        log.info("resumed the student at %d frame updates and %d window updates from %s",
+                 counters["frame_updates"], counters["updates"], latest)
+        if counters["updates"] > 0 and counters["frame_updates"] < config.frame_steps:
+            raise DistilError(
+                f"the run's first stage ended at {counters['frame_updates']} frame updates and "
+                f"{counters['updates']} updates on windows followed; frame_steps="
+                f"{config.frame_steps} cannot extend it now")
+    else:
+        if student.perception.readout is not None:
+            readout_recipe.start(student, teacher, rows, student_config)
+        elif config.copy_dynamics:
+            copy_teacher_dynamics(student, teacher.world_model.rssm)
+        # Ranks start from one student but draw their own latent samples and noise.
+        torch.manual_seed(derived_seed(config.seed, 5, rank))
+    if student.perception.readout is not None and config.readout_stage.units == "teacher":
+        readout_recipe.weigh_by_teacher(student.perception.readout, rows, config.seed)
+    if config.freeze_dynamics:
+        freeze_dynamics(student)
+    return student, optimiser, counters
 
 
 class Distiller:
@@ -360,55 +441,24 @@ class Distiller:
         self.writes = rank == 0
         self.deadline: float | None = None  # set by loop()
         self.run_folder = _run_folder(out)
-        latest = self.run_folder.latest
-        torch.manual_seed(config.seed)
-        self.student = Student(student_config)
         #: Whether the student reads frame pairs (a read-out's moving velocities).
         self.pairs = bool(student_config.readout is not None and student_config.readout.moving)
-        self.optimiser = self._optimiser()
-        if latest.exists():
-            checkpoint = read_checkpoint(latest, kind="student")
-            restore(checkpoint, self.student, student_config, {"student": self.optimiser})
-            self.updates = checkpoint.counters["updates"]
-            self.frame_updates = checkpoint.counters.get("frame_updates", 0)
-            self.seconds = float(checkpoint.extra.get("seconds", 0.0))
-            self.heldout_first = checkpoint.extra.get("heldout_first", {})
-            torch.set_rng_state(torch.tensor(checkpoint.extra["torch_rng"], dtype=torch.uint8))
-            log.info("resumed the student at %d frame updates and %d window updates from %s",
-                     self.frame_updates, self.updates, latest)
-            if self.updates > 0 and self.frame_updates < config.frame_steps:
-                raise DistilError(
-                    f"the run's first stage ended at {self.frame_updates} frame updates and "
-                    f"{self.updates} updates on windows followed; frame_steps="
-                    f"{config.frame_steps} cannot extend it now")
-        else:
-            self.updates, self.frame_updates, self.seconds, self.heldout_first = 0, 0, 0.0, {}
-            if self.student.perception.readout is not None:
-                copy_teacher_filter(self.student, self.teacher.world_model)
-                states = rows.state.numpy()
-                self.student.perception.readout.set_standardisation(
-                    *robust_standardisation(states, student_config.readout),
-                    motion_standardisation(states, student_config.readout))
-            elif config.copy_dynamics:
-                copy_teacher_dynamics(self.student, self.teacher.world_model.rssm)
-            # Ranks start from one student but draw their own latent samples and noise.
-            torch.manual_seed(derived_seed(config.seed, 5, rank))
-        if self.student.perception.readout is not None and config.readout_stage.units == "teacher":
-            readout = self.student.perception.readout
-            readout.weigh_by_teacher(_units_sample(rows.state, config.seed))
-            log.info("the read-out's loss counts each error in units of %s (state units)",
-                     [round(float(u), 4) for u in readout.scale / readout.loss_weight])
-        if config.freeze_dynamics:
-            freeze_dynamics(self.student)
+        self.student, self.optimiser, counters = _start_student(
+            config, student_config, self.teacher, rows, self.run_folder.latest, rank)
+        self.updates, self.frame_updates = counters["updates"], counters["frame_updates"]
+        self.seconds, self.heldout_first = counters["seconds"], counters["heldout_first"]
         self.student.to(device)
         self._frame_timing = [0, 0.0]  # this invocation's single-frame updates, training seconds
         move_optimiser_state(self.optimiser, device)
-        self.targets = self._teacher_targets() if config.needs_teacher_targets else None
+        self.inputs = DistilInputs(dataset_path, data, config, self.teacher, device, rank, world,
+                                   self.pairs)
+        self.targets = self.inputs.targets
         # What the first stage draws frames from: the teacher's targets, or for a read-out
         # student the states alone, of D's typical frames (``readout_stage``).
         self.rows = self.targets if self.targets is not None else rows
         if self.student.perception.readout is not None:
-            self.rows = self._readout_rows(self.rows)
+            self.rows = readout_recipe.stage_rows(self.student.perception.readout, self.rows,
+                                                  config.readout_stage)
         self.objective: nn.Module = Distillation(
             self.student, self.teacher, config,
             self.targets.scale if self.targets is not None else 1.0)
@@ -419,83 +469,12 @@ class Distiller:
         self.compiled_mode = compile_mode("on" if config.compute.compile else "off", device)
         self.train_objective: Callable[..., Any] = compiled_objective(self.objective,
                                                                       self.compiled_mode)
-        self.heldout = self._heldout_batch()
+        self.heldout = self.inputs.heldout_batch()
         self.heldout_last: dict[str, float] = {}
         self.board = TensorBoardLog(out) if self.writes else None
         if self.writes:
             _run_folder(out).write_config(config, student=student_config, teacher=teacher_path,
                                           dataset=dataset_path, world_size=world)
-
-    def _readout_rows(self, rows: FrameRows) -> FrameRows:
-        readout, stage = self.student.perception.readout, self.config.readout_stage
-        usual = typical(rows.state.cpu().numpy(), readout.config, readout.mean.cpu().numpy(),
-                        readout.scale.cpu().numpy(), stage.typical_spreads)
-        keep = training_frames(usual, stage.frames, stage.max_atypical_share)
-        log.info("the read-out trains on %d of %d frames (%d within %.0f robust spreads; "
-                 "readout_stage.frames=%s)", keep.sum(), keep.size, usual.sum(),
-                 stage.typical_spreads, stage.frames)
-        return rows.subset(keep)
-
-    def _teacher_targets(self) -> TeacherTargets:
-        c = self.config
-        train = np.flatnonzero(~heldout_episodes(self.data.n_episodes, c.schedule.holdout_every))
-        return teacher_targets(self.teacher, self.data, train, seed=derived_seed(c.seed, 6))
-
-    def _optimiser(self) -> torch.optim.Optimizer:
-        o = self.config.optim
-        return torch.optim.AdamW(self.student.parameters(), self.config.lr, eps=o.eps,
-                                 weight_decay=o.weight_decay)
-
-    def _heldout_batch(self) -> dict[str, torch.Tensor]:
-        c = self.config
-        try:
-            sampler = WindowSampler(self.data, c.sampler("heldout", derived_seed(c.seed, 1),
-                                                         c.schedule.heldout_windows, self.pairs))
-        except SamplerConfigError as exc:  # damage is its own error, not "no windows"
-            raise DistilError(f"no held-out windows (every {c.schedule.holdout_every}th episode is held "
-                              f"out): {exc}; lower schedule.holdout_every or the window length") from None
-        return split_context(_to_device(sampler.batch(), self.device),
-                             c.window_context)
-
-    def _windows(self) -> Iterator[dict[str, torch.Tensor]]:
-        """Training windows; a resumed run draws from a stream seeded by its update count."""
-        c = self.config
-        sampler = c.sampler("train", derived_seed(c.seed, 3, self.updates), pairs=self.pairs)
-        try:
-            if self._resident(sampler.keys):
-                return iter(ResidentWindows(self.data, sampler, self.device, self.rank,
-                                            self.world))
-            windows = WindowDataset(self.dataset_path, sampler)
-            loader = DataLoader(windows, batch_size=None, num_workers=c.compute.workers,
-                                pin_memory=self.device.type == "cuda",
-                                persistent_workers=c.compute.workers > 0,
-                                prefetch_factor=4 if c.compute.workers else None)
-        except SamplerConfigError as exc:
-            raise DistilError(f"no training windows: {exc}") from None
-        return iter(loader)
-
-    def _resident(self, keys: tuple[str, ...]) -> bool:
-        """Whether training windows or frames come from a copy of D on the device
-        (``resident_data``)."""
-        choice = self.config.compute.resident_data
-        if choice != "auto":
-            return choice == "on"
-        if self.device.type != "cuda":
-            return False
-        free, _ = torch.cuda.mem_get_info(self.device)
-        need = resident_bytes(self.data, keys)
-        log.info("D's copy needs %.2f GiB on %s, %.2f GiB free", need / 2**30, self.device,
-                 free / 2**30)
-        return need <= free / 2
-
-    def _window_batch(self, windows: Mapping[str, Any]) -> dict[str, torch.Tensor]:
-        context = self.config.window_context
-        batch = split_context(_to_device(windows, self.device), context)
-        if self.config.window_start == "teacher":
-            starts = torch.as_tensor(windows["start"]).cpu().numpy() + context
-            start = teacher_latent_before(self.teacher, self.targets, starts)
-            batch.update(start_deter=start["deter"], start_stoch=start["stoch"])
-        return batch
 
     @property
     def progress(self) -> int:
@@ -538,65 +517,42 @@ class Distiller:
         first_stage_done = self.frame_updates >= c.frame_steps
         if (first_stage_done and c.frame_steps and self.updates == 0 and self.updates < c.steps
                 and c.stage_optimiser == "reset"):
-            self.optimiser = self._optimiser()
-        windows = (self._windows() if self.updates < c.steps and first_stage_done
+            self.optimiser = _optimiser(self.student, c)
+        windows = (self.inputs.windows(self.updates) if self.updates < c.steps and first_stage_done
                    else iter(()))
         params = list(self.student.parameters())
-        sums: dict[str, float] = {}
-        # Training time (waiting for data + the update) per log interval and for the run;
-        # evaluation and checkpoints are excluded, so updates/s is the steady-state rate.
-        interval = {"train": 0.0, "wait": 0.0, "done": 0}
-        run = dict(interval)
-        wall = time.perf_counter()
+        meter = _Meter()
         while self.updates < c.steps and first_stage_done and not self._out_of_time():
             tick = time.perf_counter()
-            batch = self._window_batch(next(windows))
+            batch = self.inputs.window_batch(next(windows))
             waited = time.perf_counter() - tick
             if self.compiled_mode == "reduce-overhead":
                 torch.compiler.cudagraph_mark_step_begin()
             loss, terms = self.train_objective(batch)
-            self.optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
-            self.optimiser.step()
-            for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
-                sums[key] = sums.get(key, 0.0) + float(value.detach())  # also syncs a GPU
-            spent = time.perf_counter() - tick
-            for record in (interval, run):
-                record["train"] += spent
-                record["wait"] += waited
-                record["done"] += 1
+            self._step("window", loss, terms, params, meter.sums)
+            meter.add(time.perf_counter() - tick, waited)
             self.updates += 1
             if (self.updates % c.schedule.eval_every == 0 or self.updates == c.steps
                     or self._out_of_time()):
-                now = time.perf_counter()
-                self.seconds, wall = self.seconds + now - wall, now
-                row = {"updates": self.updates, "wall_s": round(self.seconds, 2),
-                       "updates_per_s": interval["done"] / interval["train"],
-                       "data_wait_share": interval["wait"] / interval["train"],
-                       **{k: v / interval["done"] for k, v in sums.items()}}
-                heldout = self.evaluate(plot=_plots_at(self.updates, c.schedule.eval_every, c.steps))
+                row = self._report(meter, "updates", self.updates, c.steps,
+                                   c.schedule.eval_every, on_progress)
                 if self.writes:
                     append_csv(self.out / "metrics.csv", row, METRIC_COLUMNS)
                     for key in (*TERMS, "loss"):
                         if key in row:
                             self.board.scalar(f"train/{key}", row[key], self.progress)
-                if on_progress is not None:
-                    on_progress(Progress(self.progress, c.frame_steps + c.steps,
-                                         row["updates_per_s"], row["data_wait_share"],
-                                         row["loss"], heldout["h_mse"]))
-                sums, interval = {}, {"train": 0.0, "wait": 0.0, "done": 0}
             if (self.updates % c.schedule.checkpoint_every == 0 or self.updates == c.steps
                     or self._out_of_time()):
                 self._checkpoint(self.run_folder.latest)
             if self.updates % c.schedule.snapshot_every == 0:
                 self._snapshot()
-        self.seconds += time.perf_counter() - wall
+        self.seconds += time.perf_counter() - meter.wall
         stopped_early = self.updates < c.steps or not first_stage_done
         if stopped_early and self.updates and self.updates % c.schedule.snapshot_every:
             self._snapshot()  # where a time limit stopped it is a point of its curve too
         student = self._checkpoint(self.out / FINAL_STUDENT)
         agent = self._bundle(self.out / AGENT)
+        run = meter.run
         summary = DistilSummary(
             out=self.out, student=student, agent=agent, teacher=self.teacher_path,
             updates=self.updates, seconds=round(self.seconds, 2),
@@ -618,20 +574,13 @@ class Distiller:
         """The first stage: the per-frame terms alone on single training frames, for
         ``frame_steps`` updates; resumable at its evaluation points."""
         c = self.config
-        resident = self._resident(("image", PAIR_IMAGE) if self.pairs else ("image",))
-        images = resident_images(self.data, self.device) if resident else None
-        pair_images = (resident_images(self.data, self.device, PAIR_IMAGE)
-                       if resident and self.pairs else None)
-        batches = FrameBatches(self.data, self.rows, c.frame_batch, c.frames, c.view,
-                               seed=derived_seed(c.seed, 7, self.frame_updates, self.rank),
-                               images=images, pairs=self.pairs, pair_images=pair_images)
+        batches = self.inputs.frame_batches(self.rows, self.frame_updates)
         params = [p for p in self.student.parameters() if p.requires_grad]
         flips = torch.Generator().manual_seed(derived_seed(c.seed, 9, self.frame_updates,
                                                            self.rank))
-        mirror = (torch.tensor(_mirror(self.data), device=self.device)
-                  if _mirror_mode(c, self.data) == "augment" else None)
-        sums: dict[str, torch.Tensor | float] = {}
-        done, spent, wall = 0, 0.0, time.perf_counter()
+        mirror = (torch.tensor(readout_recipe.task_mirror(self.data), device=self.device)
+                  if readout_recipe.mirror_mode(c, self.data) == "augment" else None)
+        meter = _Meter()
         log.info("frame stage: %d of %d updates of %d frames to go", c.frame_steps - self.frame_updates,
                  c.frame_steps, c.frame_batch)
         while self.frame_updates < c.frame_steps and not self._out_of_time():
@@ -646,57 +595,78 @@ class Distiller:
                     if "pair" in batch:
                         batch["pair"][flip] = batch["pair"][flip].flip(-2)
             with record_function("frame/forward"):
-                with precision_autocast(c.compute.precision, self.device):  # most recent frame first:
-                    embed = self.student.perception.encoder(batch["image"]).flatten(1).float()
-                    motion = (self.student.perception.motion_features(batch["pair"],
-                                                                      batch["image"][:, 0]).float()
-                              if "pair" in batch else None)
-                if self.student.perception.readout is not None:
-                    terms = {"readout": self.student.perception.readout.loss(
-                        embed, batch["state"], c.readout_stage.huber_delta, motion)}
-                    loss = terms["readout"]
-                else:
-                    terms = frame_terms(self.student, self.teacher, embed, batch["deter"],
-                                        batch["state"], batch["sensitivity"])
-                    loss = frame_loss(terms, c)
-            with record_function("frame/backward"):
-                self.optimiser.zero_grad(set_to_none=True)
-                loss.backward()
-                if self.world > 1:  # this stage runs outside DistributedDataParallel
-                    for p in params:
-                        if p.grad is not None:
-                            torch.distributed.all_reduce(p.grad)
-                            p.grad /= self.world
-            with record_function("frame/step"):
-                grad_norm = nn.utils.clip_grad_norm_(params, c.optim.grad_clip)
-                self.optimiser.step()
-            for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
-                # kept on the device: a read-back per update would stall a GPU's queue
-                sums[key] = sums.get(key, 0.0) + value.detach().float()
-            spent += time.perf_counter() - tick
-            done += 1
+                loss, terms = self._frame_loss(batch)
+            self._step("frame", loss, terms, params, meter.sums)
+            meter.add(time.perf_counter() - tick, 0.0)
             self.frame_updates += 1
             if (self.frame_updates % c.schedule.frame_eval_every == 0
                     or self.frame_updates == c.frame_steps or self._out_of_time()):
-                synced = time.perf_counter()
-                means = {k: float(v) / done for k, v in sums.items()}  # waits for the device
-                now = time.perf_counter()
-                spent += now - synced
-                self.seconds, wall = self.seconds + now - wall, now
-                row = {"frame_updates": self.frame_updates, "wall_s": round(self.seconds, 2),
-                       "updates_per_s": done / spent, **means}
-                heldout = self.evaluate(plot=_plots_at(self.frame_updates, c.schedule.frame_eval_every,
-                                                       c.frame_steps))
+                done, spent = meter.interval["done"], meter.interval["train"]
+                row = self._report(meter, "frame_updates", self.frame_updates, c.frame_steps,
+                                   c.schedule.frame_eval_every, on_progress)
                 if self.writes:
                     append_csv(self.out / "frame-metrics.csv", row, FRAME_METRIC_COLUMNS)
-                if on_progress is not None:
-                    on_progress(Progress(self.frame_updates, c.frame_steps + c.steps,
-                                         row["updates_per_s"], 0.0, row["loss"],
-                                         heldout["h_mse"]))
-                self._frame_timing = [self._frame_timing[0] + done, self._frame_timing[1] + spent]
-                sums, done, spent = {}, 0, 0.0
+                self._frame_timing = [self._frame_timing[0] + done,
+                                      self._frame_timing[1] + spent + meter.synced]
                 self._checkpoint(self.run_folder.latest)
-        self.seconds += time.perf_counter() - wall
+        self.seconds += time.perf_counter() - meter.wall
+
+    def _frame_loss(self, batch: Mapping[str, torch.Tensor]
+                    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The first stage's loss on a batch of single frames and its terms."""
+        c = self.config
+        with precision_autocast(c.compute.precision, self.device):  # most recent frame first:
+            embed = self.student.perception.encoder(batch["image"]).flatten(1).float()
+            motion = (self.student.perception.motion_features(batch["pair"],
+                                                              batch["image"][:, 0]).float()
+                      if "pair" in batch else None)
+        if self.student.perception.readout is not None:
+            terms = {"readout": self.student.perception.readout.loss(
+                embed, batch["state"], c.readout_stage.huber_delta, motion)}
+            return terms["readout"], terms
+        terms = frame_terms(self.student, self.teacher, embed, batch["deter"], batch["state"],
+                            batch["sensitivity"])
+        return frame_loss(terms, c), terms
+
+    def _step(self, stage: str, loss: torch.Tensor, terms: Mapping[str, torch.Tensor],
+              params: list[nn.Parameter], sums: dict[str, torch.Tensor]) -> None:
+        """One optimiser step of ``stage`` (``frame`` or ``window``) on ``loss``, its terms
+        and gradient norm summed into ``sums`` on the device: a read-back per update would
+        stall a GPU's queue."""
+        with record_function(f"{stage}/backward"):
+            self.optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            if stage == "frame" and self.world > 1:  # outside DistributedDataParallel
+                for p in params:
+                    if p.grad is not None:
+                        torch.distributed.all_reduce(p.grad)
+                        p.grad /= self.world
+        with record_function(f"{stage}/step"):
+            grad_norm = nn.utils.clip_grad_norm_(params, self.config.optim.grad_clip)
+            self.optimiser.step()
+        for key, value in {"loss": loss, "grad_norm": grad_norm, **terms}.items():
+            sums[key] = sums.get(key, 0.0) + value.detach().double()
+
+    def _report(self, meter: _Meter, counter: str, done: int, last: int, every: int,
+                on_progress: Callable[[Progress], None] | None) -> dict[str, float]:
+        """An evaluation point of a stage: the interval's mean metrics (the wait for the
+        device counted as training time), held-out agreement, progress; the meter restarts."""
+        c = self.config
+        means = meter.means()
+        now = time.perf_counter()
+        self.seconds, meter.wall = self.seconds + now - meter.wall, now
+        interval = meter.interval
+        row = {counter: done, "wall_s": round(self.seconds, 2),
+               "updates_per_s": interval["done"] / interval["train"],
+               **({"data_wait_share": interval["wait"] / interval["train"]}
+                  if counter == "updates" else {}), **means}
+        heldout = self.evaluate(plot=_plots_at(done, every, last))
+        if on_progress is not None:
+            on_progress(Progress(self.progress if counter == "updates" else done,
+                                 c.frame_steps + c.steps, row["updates_per_s"],
+                                 row.get("data_wait_share", 0.0), row["loss"], heldout["h_mse"]))
+        meter.restart()
+        return row
 
     def _snapshot(self) -> None:
         """The student and its agent bundle at this update count: a learning-curve point."""
