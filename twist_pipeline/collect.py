@@ -532,6 +532,83 @@ def _run_folder(folder: Path) -> RunFolder:
     return RunFolder(folder, "collect", CollectError, "a collector run")
 
 
+class TeacherEvaluation:
+    """The collector's evaluations of its teacher on states: episodes of nominal dynamics
+    with its mode action (random actions before it first acts), every ``eval_every`` frames,
+    beside doing nothing on the same episodes (deterministic: played once); ``eval.csv``, the
+    learning curve and the best return so far."""
+
+    def __init__(self, config: CollectConfig, seed: int, shard: str, folder: Path,
+                 board: TensorBoardLog) -> None:
+        self.config, self.seed, self.shard, self.folder, self.board = (config, seed, shard,
+                                                                       folder, board)
+        self.env = TaskEnv(config.task, config.action_repeat, seed=seed,
+                           max_steps=config.max_steps)
+        self.next_eval = config.eval_every
+        self.evaluated_at = -1
+        self.returns: list[float] = []
+        self.best: float | None = None
+        self.zero_action_return: float | None = None
+
+    def state(self) -> dict[str, Any]:
+        """What a checkpoint keeps of the evaluations (:meth:`restore` reads it back)."""
+        return {"next_eval": self.next_eval, "evaluated_at": self.evaluated_at,
+                "eval_returns": self.returns, "best_teacher_return": self.best}
+
+    def restore(self, extra: Mapping[str, Any]) -> None:
+        self.next_eval, self.evaluated_at = extra["next_eval"], extra["evaluated_at"]
+        self.returns = extra.get("eval_returns", [])
+        self.best = extra.get("best_teacher_return")
+
+    @property
+    def last(self) -> float | None:
+        return self.returns[-1] if self.returns else None
+
+    def run(self, teacher: Teacher, frames: int, device: torch.device, wall_s: float) -> float:
+        """Evaluate ``teacher`` once ``frames`` are in D: the episodes' mean return, also
+        appended to ``eval.csv`` and plotted."""
+        c = self.config
+        acting = frames >= c.prefill_frames
+        returns = [self.episode(j, StateAgent(teacher, None, device) if acting else
+                                random_policy(self.env.action_dim, j))
+                   for j in range(c.eval_episodes)]
+        floor = self._zero_action_return()
+        self.returns.append(float(np.mean(returns)))
+        self.evaluated_at = frames
+        while self.next_eval <= frames:
+            self.next_eval += c.eval_every
+        row = {"frames": frames, "updates": int(teacher.step),
+               "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
+               "episodes": len(returns), "wall_s": wall_s, "zero_action_return": floor}
+        append_csv(self.folder / "eval.csv", row, tuple(row))
+        self.board.scalar("eval/return", row["return_mean"], frames)
+        plot = plot_learning_curves(
+            {f"{self.shard} (seed {c.seed})": self.folder / "eval.csv"},
+            self.folder / "learning-curve.png",
+            f"{c.task}, {c.model} teacher on state, mode action", {"zero actions": floor})
+        self.board.image("eval/learning-curve", plot, frames)
+        log.info("eval at %d frames: return %.1f (zero actions: %.1f)", frames, self.returns[-1],
+                 floor)
+        return row["return_mean"]
+
+    def _zero_action_return(self) -> float:
+        if self.zero_action_return is None:
+            zero = np.zeros(self.env.action_dim, np.float32)
+            self.zero_action_return = float(np.mean(
+                [self.episode(j, lambda step: zero) for j in range(self.config.eval_episodes)]))
+        return self.zero_action_return
+
+    def episode(self, index: int, policy: Policy) -> float:
+        """The return of evaluation episode ``index`` (nominal dynamics) of ``policy``."""
+        step = self.env.reset(seed=derived_seed(self.seed, 1 << 30, index), dynamics=Dynamics())
+        total = 0.0
+        with single_threaded():
+            while not step.is_last:
+                step = self.env.step(policy(step))
+                total += step.reward
+        return total
+
+
 class Collector:
     """The state of one collector run; :meth:`loop` drives it."""
 
@@ -544,22 +621,16 @@ class Collector:
         self.env, self.renderer, self.writer, self.seed, self.device = (env, renderer, writer,
                                                                         seed, device)
         self.dr_sampler = renderer.sampler(seed)
-        self.eval_env = TaskEnv(config.task, config.action_repeat, seed=seed,
-                                max_steps=config.max_steps)
         self.seconds = dict.fromkeys(TIMED_PARTS, 0.0)
         self.replay: WindowSampler | None = None
         self.replay_state: dict | None = None
-        self.next_eval = config.eval_every
         self.next_snapshot = config.snapshot_every
-        self.evaluated_at = -1
         self.train_metrics: dict[str, float] = {}
-        self.eval_returns: list[float] = []
-        self.zero_action_return: float | None = None
         self.frozen_from: dict[str, Any] | None = None
         self.learned_until: int | None = None
-        self.best_teacher_return: float | None = None
         self.last_return: float | None = None
         self.board = TensorBoardLog(folder)
+        self.evaluation = TeacherEvaluation(config, seed, path.name, folder, self.board)
         self._load_or_create_teacher(teacher_config)
         _run_folder(folder).write_config(config, teacher=teacher_config, shard=path.name,
                                          seed=seed)
@@ -575,12 +646,9 @@ class Collector:
             extra = checkpoint.extra
             torch.set_rng_state(torch.tensor(extra["torch_rng"], dtype=torch.uint8))
             self.replay_state = extra.get("replay_rng")
-            self.next_eval = extra["next_eval"]
             self.next_snapshot = extra["next_snapshot"]
-            self.evaluated_at = extra["evaluated_at"]
+            self.evaluation.restore(extra)
             self.seconds.update(extra.get("seconds", {}))
-            self.eval_returns = extra.get("eval_returns", [])
-            self.best_teacher_return = extra.get("best_teacher_return")
             self.frozen_from = extra.get("frozen_from")
             self.learned_until = extra.get("learned_until")
             log.info("resumed the teacher at update %d from %s; D holds %d episodes (%d "
@@ -614,7 +682,7 @@ class Collector:
             self._freeze_best_if_due()
             episode_return = self._collect_episode()
             self._train()
-            if self.frames >= self.next_eval and self._changed_since_evaluation():
+            if self.frames >= self.evaluation.next_eval and self._changed_since_evaluation():
                 self._evaluate()
             self._checkpoint()
             self._log_metrics(episode_return)
@@ -622,18 +690,19 @@ class Collector:
                 elapsed = max(time.perf_counter() - started, 1e-9)
                 on_progress(Progress(self.frames, c.frames, self.writer.n_episodes,
                                      int(self.teacher.step), episode_return,
-                                     self.eval_returns[-1] if self.eval_returns else None,
+                                     self.evaluation.last,
                                      (self.frames - start_frames) / elapsed))
-        if self.evaluated_at != self.frames and self._changed_since_evaluation():
+        if self.evaluation.evaluated_at != self.frames and self._changed_since_evaluation():
             self._evaluate()
         final = self._checkpoint(final=True)
         summary = CollectSummary(
             shard=self.path, run_dir=self.folder, teacher=final,
             episodes=self.writer.n_episodes, frames=self.frames, updates=int(self.teacher.step),
             last_return=self.last_return,
-            best_eval_return=max(self.eval_returns) if self.eval_returns else None,
-            last_eval_return=self.eval_returns[-1] if self.eval_returns else None,
-            zero_action_return=self.zero_action_return, learned_until=self.learned_until,
+            best_eval_return=max(self.evaluation.returns) if self.evaluation.returns else None,
+            last_eval_return=self.evaluation.last,
+            zero_action_return=self.evaluation.zero_action_return,
+            learned_until=self.learned_until,
             frozen_from=self.frozen_from,
             dataset_bytes=ShardReader(self.path).disk_bytes(),
             seconds={k: round(v, 2) for k, v in self.seconds.items()})
@@ -729,57 +798,29 @@ class Collector:
     def _changed_since_evaluation(self) -> bool:
         """Whether the teacher may have changed since its last evaluation: not once it froze
         and was evaluated (at the first evaluation due after its last update)."""
-        return self.schedule.learns_at(self.evaluated_at + 1)
-
-    def _zero_action_return(self) -> float:
-        """The evaluation episodes' mean return doing nothing (deterministic: computed once)."""
-        if self.zero_action_return is None:
-            zero = np.zeros(self.env.action_dim, np.float32)
-            self.zero_action_return = float(np.mean(
-                [self._evaluation_episode(j, lambda step: zero)
-                 for j in range(self.config.eval_episodes)]))
-        return self.zero_action_return
+        return self.schedule.learns_at(self.evaluation.evaluated_at + 1)
 
     def _evaluate(self) -> None:
         c = self.config
         tick = time.perf_counter()
-        returns = [self._evaluation_episode(j) for j in range(c.eval_episodes)]
-        floor = self._zero_action_return()
-        self.eval_returns.append(float(np.mean(returns)))
-        self.evaluated_at = self.frames
-        while self.next_eval <= self.frames:
-            self.next_eval += c.eval_every
-        row = {"frames": self.frames, "updates": int(self.teacher.step),
-               "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
-               "episodes": len(returns), "wall_s": round(sum(self.seconds.values()), 1),
-               "zero_action_return": floor}
-        append_csv(self.folder / "eval.csv", row, tuple(row))
-        self.board.scalar("eval/return", row["return_mean"], self.frames)
-        plot = plot_learning_curves(
-            {f"{self.path.name} (seed {c.seed})": self.folder / "eval.csv"},
-            self.folder / "learning-curve.png",
-            f"{c.task}, {c.model} teacher on state, mode action", {"zero actions": floor})
-        self.board.image("eval/learning-curve", plot, self.frames)
+        mean = self.evaluation.run(self.teacher, self.frames, self.device,
+                                   round(sum(self.seconds.values()), 1))
         self.seconds["eval"] += time.perf_counter() - tick
-        log.info("eval at %d frames: return %.1f (zero actions: %.1f)", self.frames,
-                 self.eval_returns[-1], floor)
         teacher_acted = self.frames >= c.prefill_frames
-        if teacher_acted and (self.best_teacher_return is None
-                              or row["return_mean"] > self.best_teacher_return):
-            self._save_best(row["return_mean"])
-        if (c.learn_until_return is not None and row["return_mean"] >= c.learn_until_return
+        if teacher_acted and (self.evaluation.best is None or mean > self.evaluation.best):
+            self._save_best(mean)
+        if (c.learn_until_return is not None and mean >= c.learn_until_return
                 and self.frames > c.prefill_frames and self.schedule.learns_at(self.frames + 1)):
             self.learned_until = self.frames
             log.info("learning over at %d frames: the evaluation return %.1f reached "
-                     "learn_until_return %.1f", self.frames, row["return_mean"],
-                     c.learn_until_return)
+                     "learn_until_return %.1f", self.frames, mean, c.learn_until_return)
 
     def _save_best(self, eval_return: float) -> None:
         """Keep the teacher of the best evaluation so far as ``best.pt``. Its return is saved
         in the run's state (``latest.pt``), so a resumed run compares against it; an
         evaluation repeated after a crash may replace it with the repeat's teacher."""
         tick = time.perf_counter()
-        self.best_teacher_return = eval_return
+        self.evaluation.best = eval_return
         save_teacher(self.folder / BEST_TEACHER, self.teacher, self._counters(),
                      {**self._provenance(), "eval_return": eval_return})
         self.seconds["checkpoint"] += time.perf_counter() - tick
@@ -793,22 +834,6 @@ class Collector:
     def _counters(self) -> dict[str, int]:
         return {"frames": self.frames, "episodes": self.writer.n_episodes}
 
-    def _evaluation_episode(self, index: int, policy: Policy | None = None) -> float:
-        """Return of evaluation episode ``index`` (nominal dynamics) of ``policy``, by default
-        the teacher's mode action on states (random actions before it first acts)."""
-        if policy is None:
-            policy = (StateAgent(self.teacher, None, self.device)
-                      if self.frames >= self.config.prefill_frames
-                      else random_policy(self.env.action_dim, index))
-        step = self.eval_env.reset(seed=derived_seed(self.seed, 1 << 30, index),
-                                   dynamics=Dynamics())
-        total = 0.0
-        with single_threaded():
-            while not step.is_last:
-                step = self.eval_env.step(policy(step))
-                total += step.reward
-        return total
-
     def _checkpoint(self, final: bool = False) -> Path:
         tick = time.perf_counter()
         # A frozen teacher's snapshots would all be copies of teacher.pt.
@@ -818,10 +843,8 @@ class Collector:
         extra = {**self._provenance(), "torch_rng": torch.get_rng_state().tolist(),
                  "replay_rng": self.replay.rng_state if self.replay is not None
                  else self.replay_state,
-                 "next_eval": self.next_eval, "next_snapshot": self.next_snapshot,
-                 "evaluated_at": self.evaluated_at, "seconds": self.seconds,
-                 "eval_returns": self.eval_returns,
-                 "best_teacher_return": self.best_teacher_return,
+                 **self.evaluation.state(), "next_snapshot": self.next_snapshot,
+                 "seconds": self.seconds,
                  "frozen_from": self.frozen_from, "learned_until": self.learned_until}
         counters = self._counters()
         latest = save_teacher(_run_folder(self.folder).latest, self.teacher, counters, extra)
