@@ -168,14 +168,15 @@ class ReadOutStage:
     lean: float = 1.0
     """How much further from its centre (upright on cartpole) each angle it reads is handed
     to the teacher's filter than it is read (``ReadOutConfig.lean``; 1: as read); any
-    ``steps`` of Eq. 3/4 train through it. The recipe's 1.25 was chosen on held-out scenes of
-    another evaluation seed than the reported one, among 1, 1.15, 1.25, 1.35 and 1.5."""
+    ``steps`` of Eq. 3/4 train through it. The recipe's value is chosen on held-out scenes of
+    another evaluation seed than the reported one (research/log.md, "Does reading the lean
+    larger hold the lost scenes?")."""
     min_pairing: float = MIN_PAIRING
     """The least correlation, over D's steps, between a velocity and the difference of
     successive read-outs it is derived from; below it the velocity counts as one no image
-    shows and is read from frame pairs (D's ``pair_image``). Measured: cartpole 0.99; cup-catch
-    0.90-0.97; hopper-stand 0.91-0.95; panda-push's block, which stops within an agent step
-    under friction, 0.76-0.87; cheetah-run's root speed, which no image shows, 0.43."""
+    shows and is read from frame pairs (D's ``pair_image``); what each task's velocities
+    pair at: docs/findings.md, "Which tasks' velocities are the rate of something one image
+    shows?"."""
     units: str = "robust"
     """What the first stage's loss measures each read component's error in: ``robust``, its
     robust spread over D (the error in spreads that ``read_error`` reports); ``teacher``,
