@@ -508,7 +508,7 @@ class Distiller:
         c = self.config
         self.deadline = deadline
         if self.updates == 0 and not (self.out / "heldout.csv").exists():
-            self.evaluate()
+            self.evaluate(plot=False)  # a plot of one point; each stage's last redraws it
         if self.frame_updates < c.frame_steps and self.updates == 0:
             self.frame_stage(on_progress)
             if self.frame_updates == c.frame_steps:
@@ -660,7 +660,7 @@ class Distiller:
                "updates_per_s": interval["done"] / interval["train"],
                **({"data_wait_share": interval["wait"] / interval["train"]}
                   if counter == "updates" else {}), **means}
-        heldout = self.evaluate(plot=_plots_at(done, every, last))
+        heldout = self.evaluate(plot=_plots_at(done, every, last) or self._out_of_time())
         if on_progress is not None:
             on_progress(Progress(self.progress if counter == "updates" else done,
                                  c.frame_steps + c.steps, row["updates_per_s"],
@@ -701,7 +701,7 @@ class Distiller:
 def _plots_at(done: int, every: int, last: int) -> bool:
     """Whether the evaluation after ``done`` of a stage's ``last`` updates, one every
     ``every``, redraws the plot: every :data:`PLOT_EVERY_EVALUATIONS`-th, and the stage's
-    last."""
+    last (and, :meth:`Distiller._report`, the last before a time limit)."""
     return done == last or (done // every) % PLOT_EVERY_EVALUATIONS == 0
 
 
