@@ -111,16 +111,16 @@ class CollectConfig:
     """Environment frames to collect (agent steps x action repeat), prefill included."""
     learn_frames: int | None = None
     """Frames after which the teacher stops learning and, frozen, goes on acting (sampling its
-    actions) until ``frames``: more of D at ~0.7 s per ``quick`` episode instead of the 13-25 s
-    of updates each costs while the teacher learns; None: it learns until ``frames``."""
+    actions) until ``frames``: more of D at the cost of acting alone, without the updates each
+    episode costs while the teacher learns; None: it learns until ``frames``."""
     learn_until_return: float | None = None
     """Evaluation return at which the teacher stops learning, if one reaches it before
     ``learn_frames``; from the next episode on it acts frozen (with ``freeze_best``, the best
     evaluated teacher, which is then this one), as after ``learn_frames``: a teacher at the
-    task's ceiling has little left to learn, and on the CPU each ``quick`` update costs
-    ~0.25 s, 16 frames' worth. It also changes D, more of which the frozen teacher plays
-    (docs/findings.md, "Can the teacher stop at an evaluation of 990?"). None: learning ends at
-    ``learn_frames`` (or ``frames``) only."""
+    task's ceiling has little left to learn, and on a CPU its updates are most of a
+    collection's time. It also changes D, more of which the frozen teacher plays
+    (docs/findings.md, "Can the teacher stop at an evaluation of 990?"). None: learning ends
+    at ``learn_frames`` (or ``frames``) only."""
     freeze_best: bool = False
     """At ``learn_frames`` the teacher of the best evaluation so far (``best.pt``), not the
     last one, acts frozen for the rest of D: a Dreamer's evaluation return swings from one
