@@ -106,3 +106,11 @@ def test_d_is_read_verified_and_exported_without_the_simulator(tmp_path: Path) -
     assert "needs the sim extra (pip install 'twist[sim]'); 'mujoco' is not installed" in (
         result.stderr.replace("\n", " ")) or "'dm_control' is not installed" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_the_commands_set_the_level_of_every_library_package() -> None:
+    """A package missing here would log nothing under a command (its INFO lines dropped)."""
+    from twist_cli.common import LIBRARY_PACKAGES
+
+    packages = {path.parent.name for path in ROOT.glob("twist_*/__init__.py")} - {"twist_cli"}
+    assert set(LIBRARY_PACKAGES) == packages

@@ -41,13 +41,15 @@ def new_app(**settings: Any) -> typer.Typer:
 
 #: What the ``sim`` extra installs: a command that needs it, run without it, says so.
 SIM_MODULES = ("mujoco", "dm_control")
+#: The library packages whose loggers a command sets to its level (its stages' progress).
+LIBRARY_PACKAGES = ("twist_data", "twist_sim", "twist_models", "twist_pipeline")
 
 
 def run_app(app: typer.Typer, log_level: int = logging.WARNING) -> None:
     """Run a Typer app; known errors become one ``error:`` line on stderr and exit code 2.
     ``log_level`` applies to twist's own loggers; other libraries log warnings only."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    for name in ("twist_data", "twist_models"):
+    for name in LIBRARY_PACKAGES:
         logging.getLogger(name).setLevel(log_level)
     try:
         # Not standalone: usage errors come here, to be said in one line like every other.
