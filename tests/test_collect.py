@@ -82,7 +82,7 @@ def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> 
     metrics = pd.read_csv(runs / "metrics.csv")
     assert list(metrics["episodes"]) == list(range(1, dataset.n_episodes + 1))
     assert metrics["model_loss"].notna().sum() >= dataset.n_episodes - 1
-    assert len(pd.read_csv(runs / "eval.csv")) == config.frames // config.eval_every
+    assert len(pd.read_csv(runs / "eval.csv")) == config.frames // config.evaluation.every
     teacher, checkpoint = load_teacher(find_teacher(tmp_path), dataset.spec.state_dim)
     assert checkpoint.counters["frames"] == summary.frames
     assert int(teacher.step) == config.updates_due(summary.frames) == summary.updates
@@ -98,7 +98,7 @@ def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> 
     # The floor beside every evaluation: the same evaluation episodes with every action 0.
     env = TaskEnv(config.task, config.action_repeat, max_steps=config.max_steps)
     floor = []
-    for index in range(config.eval_episodes):
+    for index in range(config.evaluation.episodes):
         step, total = env.reset(seed=derived_seed(seed, 1 << 30, index)), 0.0
         while not step.is_last:
             step = env.step(np.zeros(env.action_dim, np.float32))
@@ -243,7 +243,7 @@ def test_bad_outputs_are_refused_before_anything_is_written(tmp_path: Path, monk
         collect(blocker / "D", config)
 
 
-def test_behaviour_overrides_reach_the_teacher_config() -> None:
+def test_teacher_settings_by_their_former_names_reach_the_teacher_config() -> None:
     default = collect_preset("tiny").teacher_config(5, 1)
     config = collect_preset("tiny", explore_noise=0.3, actor_entropy=1e-3, imag_starts=7,
                             horizon=50, critic_head="twohot", actor_lr=2e-5, critic_lr=3e-4,
@@ -258,10 +258,13 @@ def test_behaviour_overrides_reach_the_teacher_config() -> None:
     assert Teacher(config).actor_critic.critic[-1].out_features == 255
     assert (default.explore_noise, default.actor_critic.entropy) == (0.0, 1e-4)
     assert (behaviour.precision, default.actor_critic.precision) == ("bfloat16", "float32")
-    with pytest.raises(ConfigError, match=r"imagination_precision .*'half'"):
+    with pytest.raises(ConfigError, match=r"precision must be one of .*'half'"):
         collect_preset("tiny", imagination_precision="half")
     assert config.world_model == dataclasses.replace(default.world_model, state_noise=0.05)
     assert default.world_model.state_noise == 0.0
+    # The collect config holds them in its teacher config, their one home.
+    assert not {"actor_lr", "explore_noise", "imagination_precision"} & {
+        f.name for f in dataclasses.fields(CollectConfig)}
     # DreamerV2's train ratio: nothing before prefill, then pretrain + 1 per train_every steps.
     paper = collect_preset("paper")
     assert paper.updates_due(paper.prefill_frames - 1) == 0
@@ -503,7 +506,7 @@ def test_learning_stops_at_the_first_evaluation_that_reaches_learn_until_return(
     # A return no evaluation reaches leaves learning to learn_frames.
     never = collect(tmp_path / "never", dataclasses.replace(config, learn_until_return=1e9))
     assert never.learned_until is None and never.updates == config.updates_due(400)
-    with pytest.raises(ConfigError, match=r"learn_until_return 990\.0 needs eval_episodes"):
+    with pytest.raises(ConfigError, match=r"learn_until_return 990\.0 needs evaluation\.episodes"):
         collect_preset("tiny", learn_until_return=990.0, eval_episodes=0)
 
 
@@ -573,3 +576,35 @@ def test_a_cli_setting_of_null_clears_the_presets_value(tmp_path: Path, monkeypa
         assert seen[-1].learn_until_return == expected
     assert COLLECT_PRESETS["quick"].learn_until_return == 990.0
     assert seen[-1].learn_frames == 50_000
+
+
+def test_the_quick_preset_teacher_learns_with_the_cpu_settings() -> None:
+    teacher = collect_preset("quick").teacher_config(5, 1)
+    behaviour, model = teacher.actor_critic, teacher.world_model
+    assert (behaviour.imag_starts, behaviour.actor_lr, behaviour.critic_lr, behaviour.critic_head,
+            behaviour.return_norm, behaviour.slow_target_every, behaviour.discount,
+            behaviour.precision) == (256, 1e-3, 3e-4, "twohot", True, 50, 0.98, "auto")
+    assert (model.model_lr, model.overshoot, model.rssm.deter) == (1e-3, 15, 128)
+    # DreamerV2's schedule at quick sizes keeps DreamerV2's learning.
+    mixed = collect_preset("paper", model="quick").teacher_config(5, 1)
+    assert (mixed.world_model.rssm.deter, mixed.actor_critic.actor_lr,
+            mixed.world_model.overshoot) == (128, 8e-5, 0)
+    with pytest.raises(ConfigError, match="learning must be one of dreamerv2, cpu, got 'gpu'"):
+        collect_preset("quick", learning="gpu")
+
+
+def test_a_record_with_teacher_settings_by_former_names_loads_and_resumes_as_it_ran() -> None:
+    from twist_models.config import from_json, to_json
+    from twist_pipeline.collect import TEACHER_ALIASES
+    from twist_pipeline.runlog import record_section, resume_conflicts
+
+    ran = collect_preset("tiny", actor_lr=2e-5, overshoot=3)  # what such a run's teacher was
+    section = {k: v for k, v in to_json(ran).items() if k != "teacher"}
+    section.update({name: None for name in TEACHER_ALIASES}, teacher=None, explore_noise=0.0,
+                   actor_lr=2e-5, overshoot=3)
+    record = {"collect": section, "teacher": to_json(ran.teacher)}
+    loaded = from_json(CollectConfig, record_section(record, "collect", CollectConfig))
+    assert loaded == ran and loaded.teacher_config(5, 1).actor_critic.actor_lr == 2e-5
+    assert resume_conflicts(record_section(record, "collect", CollectConfig), loaded, ()) == []
+    with pytest.raises(ConfigError, match="needs the teacher config its run recorded"):
+        CollectConfig.record_section({"collect": section})

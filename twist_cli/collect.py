@@ -62,7 +62,8 @@ def main(
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
     settings: Annotated[list[str] | None, typer.Option(
         "--set", help="Override any CollectConfig field, KEY=VALUE (repeatable), e.g. "
-                      "--set model_lr=1e-3 --set behaviour_from=2000.")] = None,
+                      "--set behaviour_from=2000; the teacher's by dotted keys, e.g. "
+                      "--set teacher.actor_critic.actor_lr=1e-4.")] = None,
 ) -> None:
     """Train a DreamerV2 teacher on privileged state while recording K randomised renders of
     every step it takes into a matching dataset, crash-safe and resumable."""

@@ -140,11 +140,14 @@ def parse_settings(pairs: list[str], config_type: type) -> dict[str, Any]:
     by dotted keys, ``optim.grad_clip=50``), for :func:`~twist_models.config.replace_fields`;
     each VALUE is read as JSON (numbers, true/false, null) or else taken as a string."""
     hints = field_types(config_type)
-    fields, moved = set(hints), moved_fields(config_type)
+    fields = set(hints)
+    # A field's name from before it moved into a nested config, or a short name of a nested
+    # field (a config's ``ALIASES``), reaches it there.
+    names = {**moved_fields(config_type), **getattr(config_type, "ALIASES", {})}
     settings: dict[str, Any] = {}
     for pair in pairs:
-        key, sep, text = pair.partition("=")
-        key = moved.get(key, key)  # a field's name from before it moved into a nested config
+        given, sep, text = pair.partition("=")
+        key = names.get(given, given)
         if not sep or key not in fields:
             raise ConfigError(f"--set takes KEY=VALUE with KEY one of {', '.join(sorted(fields))}; "
                               f"got {pair!r}")
@@ -152,7 +155,7 @@ def parse_settings(pairs: list[str], config_type: type) -> dict[str, Any]:
             value = json.loads(text)
         except json.JSONDecodeError:
             value = text
-        settings[key] = typed_setting(key, value, text, hints[key])
+        settings[key] = typed_setting(given, value, text, hints[key])
     return settings
 
 

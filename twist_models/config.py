@@ -473,14 +473,35 @@ _AC_PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-def teacher_preset(name: str, state_dim: int, action_dim: int) -> TeacherConfig:
-    """The teacher config of preset ``name`` for a task's state and action sizes."""
+#: Named ways a teacher learns, applied over a size preset by :func:`teacher_preset`:
+#: ``dreamerv2`` is DreamerV2's DMC settings (the configs' defaults); ``cpu`` the settings that
+#: learned fastest on a 2-core CPU, each a change from DreamerV2's (a faster actor on fewer
+#: imagination starts, a two-hot critic, DreamerV3's return normalisation, a faster world model
+#: with open-loop overshooting; bfloat16 imagination where native), for action repeat 4.
+LEARNING_PRESETS: dict[str, dict[str, Any]] = {
+    "dreamerv2": {},
+    "cpu": {"actor_critic.imag_starts": 256, "actor_critic.actor_lr": 1e-3,
+            "actor_critic.critic_lr": 3e-4, "actor_critic.critic_head": "twohot",
+            "actor_critic.return_norm": True, "actor_critic.slow_target_every": 50,
+            "actor_critic.discount": 0.98, "actor_critic.precision": "auto",
+            "world_model.model_lr": 1e-3, "world_model.overshoot": 15},
+}
+
+
+def teacher_preset(name: str, state_dim: int, action_dim: int,
+                   learning: str = "dreamerv2") -> TeacherConfig:
+    """The teacher config of size preset ``name`` for a task's state and action sizes, learning
+    as :data:`LEARNING_PRESETS` ``learning`` says."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; valid presets are: {', '.join(PRESETS)}")
+    if learning not in LEARNING_PRESETS:
+        raise ConfigError(f"unknown learning preset {learning!r}; valid: "
+                          f"{', '.join(LEARNING_PRESETS)}")
     world_model = WorldModelConfig(obs="state", state_dim=state_dim, action_dim=action_dim,
                                    **PRESETS[name])
-    return TeacherConfig(world_model=world_model,
-                         actor_critic=ActorCriticConfig(**_AC_PRESETS[name]))
+    return replace_fields(TeacherConfig(world_model=world_model,
+                                        actor_critic=ActorCriticConfig(**_AC_PRESETS[name])),
+                          LEARNING_PRESETS[learning])
 
 
 def image_dreamer_preset(name: str, state_dim: int, action_dim: int, image_size: int = 64,

@@ -40,7 +40,7 @@ from collections.abc import Callable, Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -53,7 +53,7 @@ from twist_data.seeding import derived_seed
 from twist_data.writer import ShardWriter, shard_path
 from twist_models.agent import Agent
 from twist_models.config import (
-    PRECISIONS,
+    LEARNING_PRESETS,
     PRESETS,
     TeacherConfig,
     from_json,
@@ -99,14 +99,52 @@ class CollectError(TwistError):
 MAX_FRAMES = 1_000_000_000
 
 
+#: Teacher settings a collect config once held under names of its own, and ``--set`` still
+#: takes: each one's place in the teacher's config (``CollectConfig.teacher``).
+TEACHER_ALIASES = {
+    "imag_starts": "actor_critic.imag_starts", "horizon": "actor_critic.horizon",
+    "explore_noise": "explore_noise", "actor_entropy": "actor_critic.entropy",
+    "actor_grad": "actor_critic.actor_grad", "return_norm": "actor_critic.return_norm",
+    "critic_head": "actor_critic.critic_head", "actor_lr": "actor_critic.actor_lr",
+    "critic_lr": "actor_critic.critic_lr", "slow_target_every": "actor_critic.slow_target_every",
+    "model_lr": "world_model.model_lr", "overshoot": "world_model.overshoot",
+    "state_noise": "world_model.state_noise", "discount": "actor_critic.discount",
+    "imagination_precision": "actor_critic.precision",
+}
+
+
+@dataclass(frozen=True)
+class TeacherEvalConfig:
+    """The collector's evaluations of its teacher on states (:class:`TeacherEvaluation`)."""
+
+    every: int = 10_000
+    """Frames between evaluations."""
+    episodes: int = 5
+    """Episodes per evaluation (0: none)."""
+
+    def __post_init__(self) -> None:
+        require_positive(self, "every")
+        require_non_negative(self, "episodes")
+
+
 @dataclass(frozen=True)
 class CollectConfig:
     """One collector run: task, rendering, teacher sizes and the training schedule."""
+
+    #: Fields that moved into a nested config (stored runs and ``--set`` reach them there).
+    MOVED: ClassVar[dict[str, str]] = {"eval_every": "evaluation.every",
+                                       "eval_episodes": "evaluation.episodes"}
+    #: Short names ``--set`` and :meth:`with_settings` take for the teacher's fields.
+    ALIASES: ClassVar[dict[str, str]] = {name: f"teacher.{path}"
+                                         for name, path in TEACHER_ALIASES.items()}
 
     task: str = DEFAULT_TASK
     """DMC task (``twist-data tasks``)."""
     model: str = "quick"
     """Teacher size preset (``tiny``, ``quick``, ``paper``)."""
+    learning: str = "dreamerv2"
+    """How the teacher learns over its size preset (``LEARNING_PRESETS``: ``dreamerv2``, or
+    ``cpu``, the settings that learned fastest on a 2-core CPU)."""
     frames: int = 100_000
     """Environment frames to collect (agent steps x action repeat), prefill included."""
     learn_frames: int | None = None
@@ -181,56 +219,19 @@ class CollectConfig:
     """Replay windows per update."""
     batch_length: int = 50
     """Steps per replay window."""
-    eval_every: int = 10_000
-    """Frames between evaluations of the teacher on states."""
-    eval_episodes: int = 5
-    """Episodes per evaluation."""
+    evaluation: TeacherEvalConfig = field(default_factory=lambda: TeacherEvalConfig())
+    """How often and how long the teacher is evaluated on states while it learns."""
     snapshot_every: int = 100_000
     """Frames between kept teacher checkpoints (``latest.pt`` is written every episode)."""
     behaviour_from: int = 0
     """Teacher updates that train the world model alone before the actor-critic joins in: its
     imagination is only worth learning from once the model predicts something (and such
     updates cost a third of a full one)."""
-    imag_starts: int | None = None
-    """Override of the model preset's imagination starts (0 = all); None keeps the preset's."""
-    horizon: int | None = None
-    """Override of the actor-critic's imagination horizon; None keeps the preset's (15)."""
-    explore_noise: float = 0.0
-    """Std of Gaussian noise added to the teacher's sampled actions while collecting."""
-    actor_entropy: float | None = None
-    """Override of the actor's entropy bonus (DreamerV2: 1e-4); None keeps the preset's."""
-    actor_grad: str | None = None
-    """Override of the actor's gradient (``dynamics``/``reinforce``); None keeps the preset's."""
-    return_norm: bool | None = None
-    """Override of DreamerV3's return normalisation; None keeps the preset's."""
-    critic_head: str | None = None
-    """Override of the critic's output (``mse``/``twohot``); None keeps the preset's."""
-    actor_lr: float | None = None
-    """Override of the actor's learning rate; None keeps the preset's."""
-    critic_lr: float | None = None
-    """Override of the critic's learning rate; None keeps the preset's."""
-    slow_target_every: int | None = None
-    """Override of the critic updates between slow-target copies; None keeps the preset's."""
-    model_lr: float | None = None
-    """Override of the world model's learning rate; None keeps the preset's."""
-    overshoot: int | None = None
-    """Override of the world model's open-loop overshooting steps (0: off); None keeps the
-    preset's."""
-    state_noise: float | None = None
-    """Override of the noise through which the teacher reads the state (``WorldModelConfig.
-    state_noise``); None keeps the preset's (0: exact states)."""
-    discount: float | None = None
-    """Override of the actor-critic's per-agent-step discount; None keeps the preset's (0.99,
-    DreamerV2's at action repeat 2: keep gamma ** (1 / action_repeat) fixed to keep the
-    horizon in seconds)."""
-    imagination_precision: str | None = None
-    """Override of the arithmetic of the teacher's imagined rollouts and actor-critic
-    (``float32``, ``bfloat16`` or ``auto``: ``ActorCriticConfig.precision``); None keeps the
-    preset's (float32)."""
     teacher: TeacherConfig | None = None
     """The teacher's whole config, its sizes included; None: the ``model`` preset's for the
-    task. ``--set teacher.<field>=...`` (e.g. ``teacher.world_model.rssm.deter=256``) starts
-    it from that preset (:meth:`with_settings`). The override fields above apply on top."""
+    task, learning as ``learning`` says. ``--set teacher.<field>=...`` (e.g.
+    ``teacher.world_model.rssm.deter=256``, ``teacher.actor_critic.actor_lr=1e-4``) starts it
+    from there (:meth:`with_settings`); the names in :data:`TEACHER_ALIASES` reach it too."""
     compile: str = "auto"
     """Teacher updates through ``torch.compile`` (``auto``: with CUDA graphs on a CUDA device,
     eager on a CPU, where it saves too little; ``on``: on a CPU the loops in pieces;
@@ -239,8 +240,7 @@ class CollectConfig:
     def __post_init__(self) -> None:
         task_spec(self.task)  # raises UnknownTaskError naming the valid tasks
         require_choice(self, "compile", COMPILE_SETTINGS)
-        if self.imagination_precision is not None:
-            require_choice(self, "imagination_precision", PRECISIONS)
+        require_choice(self, "learning", tuple(LEARNING_PRESETS))
         if self.model not in PRESETS:
             raise ConfigError(f"unknown model preset {self.model!r}; valid: {', '.join(PRESETS)}")
         if self.dr not in DR_PRESETS:
@@ -249,9 +249,8 @@ class CollectConfig:
             raise ConfigError(f"frames {self.frames} is more than {MAX_FRAMES:,} (years of "
                               "simulation on one machine); collect in shards instead")
         require_positive(self, "frames", "views", "image_size", "supersample", "action_repeat",
-                         "train_every", "batch_size", "batch_length", "eval_every",
-                         "snapshot_every")
-        require_non_negative(self, "prefill_frames", "pretrain_updates", "eval_episodes",
+                         "train_every", "batch_size", "batch_length", "snapshot_every")
+        require_non_negative(self, "prefill_frames", "pretrain_updates",
                              "behaviour_from", "frozen_noise", "push_every")
         require_positive(self, "push_steps")
         if self.learn_frames is not None and self.learn_frames <= self.prefill_frames:
@@ -261,28 +260,50 @@ class CollectConfig:
             if getattr(self, name) and self.learn_frames is None:
                 raise ConfigError(f"{name} changes who acts once the teacher is frozen; it "
                                   "needs learn_frames")
-        if self.freeze_best and (self.learn_frames is None or self.eval_episodes < 1):
-            raise ConfigError("freeze_best needs learn_frames and eval_episodes >= 1 (it "
+        if self.freeze_best and (self.learn_frames is None or self.evaluation.episodes < 1):
+            raise ConfigError("freeze_best needs learn_frames and evaluation.episodes >= 1 (it "
                               "freezes the best evaluated teacher when learning ends)")
-        if self.learn_until_return is not None and self.eval_episodes < 1:
+        if self.learn_until_return is not None and self.evaluation.episodes < 1:
             raise ConfigError(f"learn_until_return {self.learn_until_return} needs "
-                              "eval_episodes >= 1: it stops learning on an evaluation's return")
+                              "evaluation.episodes >= 1: it stops learning on an evaluation's "
+                              "return")
         if self.max_steps is not None and self.max_steps < self.batch_length:
             raise ConfigError(f"max_steps {self.max_steps} is shorter than one replay window "
                               f"(batch_length {self.batch_length})")
 
     def with_settings(self, settings: Mapping[str, Any]) -> CollectConfig:
-        """This config with ``settings`` replaced (dotted keys reach nested configs). A
-        ``teacher.<field>`` key on a config without a teacher config first gets the ``model``
-        preset's for the task (as it stands after the other settings) to change."""
+        """This config with ``settings`` replaced (dotted keys reach nested configs; the names
+        of :data:`TEACHER_ALIASES` the teacher's fields). A ``teacher.<field>`` key on a config
+        without a teacher config first gets the ``model`` and ``learning`` presets' for the
+        task (as they stand after the other settings) to change."""
+        settings = {self.ALIASES.get(k, k): v for k, v in settings.items()}
         own = {k: v for k, v in settings.items() if not k.startswith("teacher.")}
         config = replace_fields(self, own)
         teacher = {k: v for k, v in settings.items() if k.startswith("teacher.")}
         if teacher and config.teacher is None:
             env = TaskEnv(config.task, config.action_repeat)
             config = dataclasses.replace(config, teacher=teacher_preset(
-                config.model, env.state_dim, env.action_dim))
+                config.model, env.state_dim, env.action_dim, config.learning))
         return replace_fields(config, teacher)
+
+    @classmethod
+    def record_section(cls, record: Mapping[str, Any]) -> dict[str, Any]:
+        """The ``collect`` section of a run's ``config.json``, as this version stores it: a run
+        recorded while the teacher's settings had names of their own here
+        (:data:`TEACHER_ALIASES`) holds them in its teacher config, which the record keeps
+        whole beside them (``teacher``), so it loads, resumes and compares as it ran."""
+        section = dict(record["collect"])
+        if any(name in section for name in TEACHER_ALIASES):
+            for name in TEACHER_ALIASES:
+                section.pop(name, None)
+            if "teacher" not in record:
+                raise ConfigError("a collect config that names teacher settings by their "
+                                  f"former names ({', '.join(TEACHER_ALIASES)}) needs the "
+                                  "teacher config its run recorded beside it")
+            # The teacher that ran: the settings applied over the collect config's own teacher,
+            # with the fields added since at their defaults, which keep its behaviour.
+            section["teacher"] = to_json(from_json(TeacherConfig, record["teacher"]))
+        return section
 
     def teacher_config(self, state_dim: int, action_dim: int) -> TeacherConfig:
         if self.teacher is not None:
@@ -291,19 +312,8 @@ class CollectConfig:
                 raise ConfigError(f"the teacher config reads states of {wm.state_dim} and acts "
                                   f"in {wm.action_dim} dimensions, but {self.task} has "
                                   f"{state_dim} and {action_dim}")
-        config = self.teacher or teacher_preset(self.model, state_dim, action_dim)
-        behaviour = _given(imag_starts=self.imag_starts, horizon=self.horizon,
-                           entropy=self.actor_entropy, actor_grad=self.actor_grad,
-                           return_norm=self.return_norm, critic_head=self.critic_head,
-                           actor_lr=self.actor_lr, critic_lr=self.critic_lr,
-                           slow_target_every=self.slow_target_every, discount=self.discount,
-                           precision=self.imagination_precision)
-        model = _given(model_lr=self.model_lr, overshoot=self.overshoot,
-                       state_noise=self.state_noise)
-        return dataclasses.replace(
-            config, explore_noise=self.explore_noise,
-            world_model=dataclasses.replace(config.world_model, **model),
-            actor_critic=dataclasses.replace(config.actor_critic, **behaviour))
+            return self.teacher
+        return teacher_preset(self.model, state_dim, action_dim, self.learning)
 
     def learns_at(self, frames: int) -> bool:
         """Whether the teacher still learns (or has just learned) once ``frames`` are in D."""
@@ -329,26 +339,23 @@ COLLECT_PRESETS: dict[str, CollectConfig] = {
     # 100, train_every 5; 500K frames, eval every 10K frames.
     # Rendered anti-aliased (supersample 2), as dm_control's own 4x multisampled render is:
     # without it cartpole's pole breaks into stray pixels at 64x64; the same holds for quick.
-    "paper": CollectConfig(model="paper", frames=500_000, eval_every=10_000, eval_episodes=10,
+    "paper": CollectConfig(model="paper", frames=500_000, evaluation=TeacherEvalConfig(10_000, 10),
                            snapshot_every=100_000, prefill_frames=10_000, supersample=2),
-    # CPU-sized teacher: the settings that learned fastest on a 2-core CPU, each one `--set`
-    # from DreamerV2's (action repeat 4, a warm-up of world-model updates, a faster actor, a
-    # two-hot critic, open-loop overshooting; bfloat16 imagination where native). It learns
+    # CPU-sized teacher: the settings that learned fastest on a 2-core CPU, each a change from
+    # DreamerV2's (action repeat 4, a warm-up of world-model updates, and the teacher's `cpu`
+    # learning: a faster actor, a two-hot critic, open-loop overshooting). It learns
     # to 100K frames or its first evaluation of 990, then its best evaluated snapshot acts
     # frozen to 300 episodes, since the student needs the final teacher's trajectories
     # (docs/findings.md, "The teacher on states").
-    "quick": CollectConfig(model="quick", frames=300_000, learn_frames=100_000, freeze_best=True,
-                           learn_until_return=990.0,
-                           supersample=2, eval_every=2_000, eval_episodes=10,
+    "quick": CollectConfig(model="quick", learning="cpu", frames=300_000, learn_frames=100_000,
+                           freeze_best=True, learn_until_return=990.0,
+                           supersample=2, evaluation=TeacherEvalConfig(2_000, 10),
                            snapshot_every=20_000, action_repeat=4, prefill_frames=10_000,
                            pretrain_updates=2_000, behaviour_from=2_000, train_every=4,
-                           batch_size=32, imag_starts=256, model_lr=1e-3, overshoot=15,
-                           return_norm=True, critic_head="twohot", actor_lr=1e-3,
-                           critic_lr=3e-4, slow_target_every=50, discount=0.98,
-                           imagination_precision="auto"),
+                           batch_size=32),
     # Tests and smoke runs: seconds, learns nothing.
-    "tiny": CollectConfig(model="tiny", frames=400, max_steps=50, eval_every=200,
-                          eval_episodes=1, snapshot_every=200, prefill_frames=100,
+    "tiny": CollectConfig(model="tiny", frames=400, max_steps=50,
+                          evaluation=TeacherEvalConfig(200, 1), snapshot_every=200, prefill_frames=100,
                           pretrain_updates=2, train_every=25, batch_size=4, batch_length=16),
 }
 
@@ -534,7 +541,7 @@ def _run_folder(folder: Path) -> RunFolder:
 
 class TeacherEvaluation:
     """The collector's evaluations of its teacher on states: episodes of nominal dynamics
-    with its mode action (random actions before it first acts), every ``eval_every`` frames,
+    with its mode action (random actions before it first acts), every ``evaluation.every`` frames,
     beside doing nothing on the same episodes (deterministic: played once); ``eval.csv``, the
     learning curve and the best return so far."""
 
@@ -544,7 +551,7 @@ class TeacherEvaluation:
                                                                        folder, board)
         self.env = TaskEnv(config.task, config.action_repeat, seed=seed,
                            max_steps=config.max_steps)
-        self.next_eval = config.eval_every
+        self.next_eval = config.evaluation.every
         self.evaluated_at = -1
         self.returns: list[float] = []
         self.best: float | None = None
@@ -571,12 +578,12 @@ class TeacherEvaluation:
         acting = frames >= c.prefill_frames
         returns = [self.episode(j, StateAgent(teacher, None, device) if acting else
                                 random_policy(self.env.action_dim, j))
-                   for j in range(c.eval_episodes)]
+                   for j in range(c.evaluation.episodes)]
         floor = self._zero_action_return()
         self.returns.append(float(np.mean(returns)))
         self.evaluated_at = frames
         while self.next_eval <= frames:
-            self.next_eval += c.eval_every
+            self.next_eval += c.evaluation.every
         row = {"frames": frames, "updates": int(teacher.step),
                "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
                "episodes": len(returns), "wall_s": wall_s, "zero_action_return": floor}
@@ -595,7 +602,8 @@ class TeacherEvaluation:
         if self.zero_action_return is None:
             zero = np.zeros(self.env.action_dim, np.float32)
             self.zero_action_return = float(np.mean(
-                [self.episode(j, lambda step: zero) for j in range(self.config.eval_episodes)]))
+                [self.episode(j, lambda step: zero)
+                 for j in range(self.config.evaluation.episodes)]))
         return self.zero_action_return
 
     def episode(self, index: int, policy: Policy) -> float:
@@ -871,4 +879,4 @@ class Collector:
 def stored_config(out: str | os.PathLike[str], shard: str) -> CollectConfig:
     """The collect config a run in ``out`` was started with."""
     data = json.loads(_run_folder(run_dir(out, shard)).config_file.read_text())
-    return from_json(CollectConfig, data["collect"])
+    return from_json(CollectConfig, CollectConfig.record_section(data))

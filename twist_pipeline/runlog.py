@@ -168,7 +168,8 @@ class RunFolder:
             raise self.error(f"{str(self.path)!r} already holds {self.what}; pass --resume to "
                              "continue it, or another --out")
         if resume and before is not None:
-            conflicts = resume_conflicts(before[self.section], config, may_change)
+            conflicts = resume_conflicts(record_section(before, self.section, type(config)),
+                                         config, may_change)
             refuse_resume([*conflicts, *also], self.error, may_change_options)
 
     def write_config(self, config: Any, **context: Any) -> None:
@@ -180,6 +181,14 @@ class RunFolder:
         partial = self.config_file.with_suffix(".json.partial")
         partial.write_text(json.dumps(sections, indent=2))
         os.replace(partial, self.config_file)
+
+
+def record_section(record: Mapping[str, Any], section: str, config_type: type) -> dict[str, Any]:
+    """The ``section`` of a run's ``config.json`` as ``config_type`` stores it now: its own
+    ``record_section`` where it keeps older records loading (a field whose place moved beyond
+    what :func:`~twist_models.config.moved_fields` reaches), else the section as recorded."""
+    upgrade = getattr(config_type, "record_section", None)
+    return upgrade(record) if upgrade is not None else dict(record[section])
 
 
 def recorded_config(path: str | os.PathLike[str], section: str, config_type: type[T]) -> T:
@@ -203,6 +212,6 @@ def recorded_config(path: str | os.PathLike[str], section: str, config_type: typ
         raise ConfigError(f"config file {str(file)!r} is {what}; this command starts from a "
                           f"{section} run's")
     try:
-        return from_json(config_type, data[section])
-    except (ConfigError, TypeError, ValueError) as exc:
+        return from_json(config_type, record_section(data, section, config_type))
+    except (ConfigError, TypeError, ValueError, KeyError) as exc:
         raise ConfigError(f"config file {str(file)!r}: {exc}") from None
