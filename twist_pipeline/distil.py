@@ -441,8 +441,6 @@ class Distiller:
         self.writes = rank == 0
         self.deadline: float | None = None  # set by loop()
         self.run_folder = _run_folder(out)
-        #: Whether the student reads frame pairs (a read-out's moving velocities).
-        self.pairs = bool(student_config.readout is not None and student_config.readout.moving)
         self.student, self.optimiser, counters = _start_student(
             config, student_config, self.teacher, rows, self.run_folder.latest, rank)
         self.updates, self.frame_updates = counters["updates"], counters["frame_updates"]
@@ -450,18 +448,20 @@ class Distiller:
         self.student.to(device)
         self._frame_timing = [0, 0.0]  # this invocation's single-frame updates, training seconds
         move_optimiser_state(self.optimiser, device)
+        # Whether the student reads frame pairs (a read-out's moving velocities).
+        pairs = bool(student_config.readout is not None and student_config.readout.moving)
         self.inputs = DistilInputs(dataset_path, data, config, self.teacher, device, rank, world,
-                                   self.pairs)
-        self.targets = self.inputs.targets
+                                   pairs)
+        targets = self.inputs.targets
         # What the first stage draws frames from: the teacher's targets, or for a read-out
         # student the states alone, of D's typical frames (``readout_stage``).
-        self.rows = self.targets if self.targets is not None else rows
+        self.rows = targets if targets is not None else rows
         if self.student.perception.readout is not None:
             self.rows = readout_recipe.stage_rows(self.student.perception.readout, self.rows,
                                                   config.readout_stage)
         self.objective: nn.Module = Distillation(
             self.student, self.teacher, config,
-            self.targets.scale if self.targets is not None else 1.0)
+            targets.scale if targets is not None else 1.0)
         if world > 1:
             self.objective = nn.parallel.DistributedDataParallel(
                 self.objective, device_ids=[device.index] if device.type == "cuda" else None)
