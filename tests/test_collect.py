@@ -34,6 +34,7 @@ from twist_pipeline.collect import (
     COLLECT_PRESETS,
     CollectConfig,
     CollectError,
+    TeacherEvalConfig,
     collect,
     collect_preset,
     shard_seed,
@@ -508,6 +509,18 @@ def test_learning_stops_at_the_first_evaluation_that_reaches_learn_until_return(
     assert never.learned_until is None and never.updates == config.updates_due(400)
     with pytest.raises(ConfigError, match=r"learn_until_return 990\.0 needs evaluation\.episodes"):
         collect_preset("tiny", learn_until_return=990.0, eval_episodes=0)
+
+
+def test_a_resumed_run_may_evaluate_at_another_cadence(tmp_path: Path) -> None:
+    config = collect_preset("tiny", frames=300, learn_frames=600, eval_every=100)
+    collect(tmp_path, config)
+    slower = dataclasses.replace(config, frames=700,
+                                 evaluation=TeacherEvalConfig(every=200, episodes=1))
+    collect(tmp_path, slower, resume=True)
+    evals = pd.read_csv(tmp_path / "collect" / "collect-000" / "eval.csv")
+    # The evaluation due when the run stopped keeps its frame; the new cadence follows it.
+    assert evals["frames"].tolist() == [100, 200, 300, 400, 600]
+    assert evals["episodes"].tolist() == [config.evaluation.episodes] * 4 + [1]
 
 
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:

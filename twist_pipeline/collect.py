@@ -526,9 +526,11 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     if path.exists() and not resume:
         raise CollectError(f"shard {path.name!r} already exists in {str(out)!r}; pass --resume "
                            "to continue it, or --shard to add another")
-    # compile is how, not what, the run computes: a resumed run may move to another device.
+    # compile is how, not what, the run computes: a resumed run may move to another device;
+    # how often and how long the teacher is evaluated may change in a long run.
     extendable = ("frames", "learn_frames", "learn_until_return", "freeze_best", "frozen_noise",
-                  "push_every", "push_steps", "student", "compile")
+                  "push_every", "push_steps", "student", "compile", "evaluation.every",
+                  "evaluation.episodes")
     # The shard, not the config, marks an existing run here (checked above).
     if resume:
         _run_folder(folder).open(config, True, extendable,
