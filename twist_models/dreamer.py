@@ -3,6 +3,9 @@ imagination. The teacher is one on privileged state; the offline image baselines
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import torch
 from torch import nn
 
@@ -24,9 +27,9 @@ class Dreamer(nn.Module):
         self.world_model = WorldModel(wm)
         self.actor_critic = ActorCritic(wm.rssm.feature_dim, wm.action_dim, config.actor_critic,
                                         config.optim)
-        self.model_opt = torch.optim.AdamW(self.world_model.parameters(), wm.model_lr,
-                                           eps=config.optim.eps,
-                                           weight_decay=config.optim.weight_decay)
+        self._model_opt: torch.optim.Optimizer | None = None
+        # Optimiser states read from a checkpoint before the optimisers were first needed.
+        self._pending_states: Mapping[str, Any] = {}
         self.register_buffer("step", torch.zeros((), dtype=torch.int64))
         self.compiled_mode: str | None = None
         self._model_loss = self.world_model.loss
@@ -55,13 +58,43 @@ class Dreamer(nn.Module):
     def to_device(self, device: torch.device | str) -> Dreamer:
         """Move weights and optimiser moments to ``device``."""
         self.to(device)
-        for optimiser in self.optimisers().values():
-            move_optimiser_state(optimiser, device)
+        if self._model_opt is not None:  # optimisers built later load onto the weights' device
+            for optimiser in self.optimisers().values():
+                move_optimiser_state(optimiser, device)
         return self
 
+    @property
+    def model_opt(self) -> torch.optim.Optimizer:
+        return self.optimisers()["model"]
+
     def optimisers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"model": self.model_opt, "actor": self.actor_critic.actor_opt,
-                "critic": self.actor_critic.critic_opt}
+        """The three optimisers, built when first asked for: building one imports
+        torch._dynamo (seconds), which a process that only acts (an evaluation) never needs."""
+        first = self._model_opt is None
+        if first:
+            optim = self.config.optim
+            self._model_opt = torch.optim.AdamW(self.world_model.parameters(),
+                                                self.config.world_model.model_lr,
+                                                eps=optim.eps, weight_decay=optim.weight_decay)
+        built = {"model": self._model_opt, "actor": self.actor_critic.actor_opt,
+                 "critic": self.actor_critic.critic_opt}
+        if first:
+            self._load_pending(built)
+        return built
+
+    def restore_optimisers(self, states: Mapping[str, Any]) -> None:
+        """Load a checkpoint's optimiser ``states`` (by :meth:`optimisers` name) now if the
+        optimisers exist, else when they are first built; the moments then land on the
+        weights' device (``Optimizer.load_state_dict`` moves them)."""
+        self._pending_states = dict(states)
+        if self._model_opt is not None:
+            self._load_pending(self.optimisers())
+
+    def _load_pending(self, optimisers: Mapping[str, torch.optim.Optimizer]) -> None:
+        states, self._pending_states = self._pending_states, {}
+        for name, optimiser in optimisers.items():
+            if name in states:
+                optimiser.load_state_dict(states[name])
 
     def train_step(self, batch: dict[str, torch.Tensor], behaviour: bool = True
                    ) -> dict[str, float]:

@@ -99,7 +99,8 @@ def teacher_from_checkpoint(checkpoint: Checkpoint, state_dim: int | None = None
             raise CheckpointMismatchError(f"teacher checkpoint {source!r} has {name} {have}, "
                                           f"but the data has {name} {wanted}")
     teacher = Teacher(config)
-    restore(checkpoint, teacher, config, teacher.optimisers())
+    restore(checkpoint, teacher, config)
+    teacher.restore_optimisers(checkpoint.optimisers)
     return teacher
 
 
