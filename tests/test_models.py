@@ -461,6 +461,32 @@ def test_tiny_world_model_overfits_a_toy_sequence() -> None:
     assert metrics["reward_loss"].item() - 0.5 * np.log(2 * np.pi) < 0.02
 
 
+def test_the_normal_actor_is_dreamerv3s_clipped_normal() -> None:
+    from twist_models.actor_critic import Actor, ClippedNormal
+
+    torch.manual_seed(0)
+    config = dataclasses.replace(teacher_preset("tiny", 1, 3).actor_critic, actor_dist="normal",
+                                 min_std=0.1, max_std=1.0)
+    actor = Actor(8, 3, config)
+    torch.nn.init.zeros_(actor.net[-1].weight)
+    torch.nn.init.zeros_(actor.net[-1].bias)
+    policy = actor(torch.randn(5, 8))
+    # At a zero output: mean tanh(0) = 0 and std 0.9 sigmoid(2) + 0.1 (about 0.89).
+    assert torch.allclose(policy.std, torch.full((5, 3), 0.9 / (1 + np.exp(-2.0)) + 0.1))
+    reference = torch.distributions.Normal(policy.mean, policy.std)
+    assert torch.allclose(policy.entropy(), reference.entropy())
+    x = torch.linspace(-2, 2, 15).view(5, 3)
+    assert torch.allclose(policy.log_prob(x), reference.log_prob(x))
+    # Samples stay in the box, and one clipped at a bound still moves with the mean.
+    mean = torch.full((20000,), 0.95, requires_grad=True)
+    sample = ClippedNormal(mean, torch.full((20000,), 0.5)).rsample()
+    assert sample.min() >= -1 and sample.max() <= 1 and (sample == 1).float().mean() > 0.4
+    sample.sum().backward()
+    assert torch.equal(mean.grad, torch.ones(20000))
+    with pytest.raises(ConfigError, match="max_std must exceed min_std"):
+        dataclasses.replace(config, max_std=0.1)
+
+
 @pytest.mark.parametrize("actor_grad, return_norm, critic_head",
                          [("dynamics", False, "mse"), ("reinforce", True, "twohot")])
 def test_actor_critic_learns_the_known_optimal_action_of_a_toy_task(actor_grad: str,
@@ -509,12 +535,18 @@ def test_actor_critic_learns_the_known_optimal_action_of_a_toy_task(actor_grad: 
     assert teacher.act_on_latent(teacher.world_model.rssm.initial(1)).abs().item() < 0.15
 
 
-def test_checkpoint_round_trip_is_bit_exact(tmp_path: Path) -> None:
+def test_checkpoint_round_trip_is_bit_exact(tmp_path: Path, monkeypatch) -> None:
     torch.manual_seed(0)
     teacher = Teacher(teacher_preset("tiny", 5, 2))
     teacher.train_step(_batch())
     path = save_teacher(tmp_path / "teacher.ckpt", teacher, {"env_steps": 1234})
+    built = []
+    adamw = torch.optim.AdamW
+    monkeypatch.setattr(torch.optim, "AdamW", lambda *a, **k: built.append(1) or adamw(*a, **k))
     loaded, checkpoint = load_teacher(path, state_dim=5, action_dim=2)
+    # A teacher that only acts builds no optimiser (whose construction imports torch._dynamo).
+    loaded.policy(torch.zeros(1, 5), None, torch.zeros(1, 2), torch.ones(1, dtype=torch.bool))
+    assert built == []
     assert checkpoint.counters == {"updates": 1, "env_steps": 1234}
     feature = torch.randn(4, teacher.config.world_model.rssm.feature_dim)
     assert torch.equal(teacher.actor_critic.actor(feature).mean, loaded.actor_critic.actor(feature).mean)
@@ -527,6 +559,7 @@ def test_checkpoint_round_trip_is_bit_exact(tmp_path: Path) -> None:
     teacher.train_step(batch)
     torch.manual_seed(3)
     loaded.train_step(batch)
+    assert built == [1, 1, 1]
     for a, b in zip(teacher.parameters(), loaded.parameters(), strict=True):
         assert torch.equal(a, b)
 

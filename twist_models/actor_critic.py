@@ -67,18 +67,47 @@ class TruncatedNormal:
         return self.mean.clamp(self.low, self.high)
 
 
+class ClippedNormal:
+    """Normal(mean, std) whose samples are clipped to [low, high], the gradient of a clipped
+    sample passed straight through (the first DreamerV3's continuous actor)."""
+
+    def __init__(self, mean: torch.Tensor, std: torch.Tensor, low: float = -1.0,
+                 high: float = 1.0) -> None:
+        self.mean, self.std, self.low, self.high = mean, std, low, high
+
+    def rsample(self) -> torch.Tensor:
+        """A sample with gradients to mean and std: [...]."""
+        x = self.mean + self.std * torch.randn_like(self.mean)
+        return x + (x.clamp(self.low, self.high) - x).detach()
+
+    def entropy(self) -> torch.Tensor:
+        """Per-dimension entropy of the unclipped normal [...]."""
+        return torch.log(math.sqrt(2 * math.pi * math.e) * self.std)
+
+    def log_prob(self, x: torch.Tensor) -> torch.Tensor:
+        z = (x - self.mean) / self.std
+        return -0.5 * z**2 - math.log(math.sqrt(2 * math.pi)) - torch.log(self.std)
+
+    @property
+    def mode(self) -> torch.Tensor:
+        return self.mean
+
+
 class Actor(nn.Module):
-    """feature [..., F] -> truncated normal over actions in [-1, 1]^A."""
+    """feature [..., F] -> a distribution over actions in [-1, 1]^A (``actor_dist``)."""
 
     def __init__(self, feature_dim: int, action_dim: int, config: ActorCriticConfig) -> None:
         super().__init__()
         self.net = MLP(feature_dim, 2 * action_dim, config.actor)
-        self.min_std = config.min_std
+        self.dist, self.min_std, self.max_std = config.actor_dist, config.min_std, config.max_std
 
-    def forward(self, feature: torch.Tensor) -> TruncatedNormal:
+    def forward(self, feature: torch.Tensor) -> TruncatedNormal | ClippedNormal:
         # float32 whatever autocast the net ran in: bfloat16 would round the erfinv clamp's
         # 1 - 1e-6 to 1 and the sample to infinity.
         mean, std = full_precision(self.net(feature)).chunk(2, -1)
+        if self.dist == "normal":  # DreamerV3: std (max - min) sigmoid(x + 2) + min, ~0.9 at 0
+            std = (self.max_std - self.min_std) * torch.sigmoid(std + 2) + self.min_std
+            return ClippedNormal(torch.tanh(mean), std)
         return TruncatedNormal(torch.tanh(mean), 2 * torch.sigmoid(std / 2) + self.min_std)
 
 
@@ -101,14 +130,32 @@ class ActorCritic(nn.Module):
             self.critic = MLP(feature_dim, 1, config.critic)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.grad_clip = optim.grad_clip
-        self.actor_opt = torch.optim.AdamW(self.actor.parameters(), config.actor_lr, eps=optim.eps,
-                                           weight_decay=optim.weight_decay)
-        self.critic_opt = torch.optim.AdamW(self.critic.parameters(), config.critic_lr,
-                                            eps=optim.eps, weight_decay=optim.weight_decay)
+        self._optim = optim
+        self._optimisers: tuple[torch.optim.Optimizer, torch.optim.Optimizer] | None = None
         self.register_buffer("updates", torch.zeros((), dtype=torch.int64))
         # EMA of the (5%, 95%) quantiles of imagined returns, for return_norm.
         self.register_buffer("return_range", torch.zeros(2))
         self.compile_imagination(None)
+
+    # Built when first used: an optimiser's construction imports torch._dynamo (seconds), which
+    # a process that only acts (an evaluation) never needs.
+    @property
+    def actor_opt(self) -> torch.optim.Optimizer:
+        return self._built_optimisers()[0]
+
+    @property
+    def critic_opt(self) -> torch.optim.Optimizer:
+        return self._built_optimisers()[1]
+
+    def _built_optimisers(self) -> tuple[torch.optim.Optimizer, torch.optim.Optimizer]:
+        if self._optimisers is None:
+            c, o = self.config, self._optim
+            self._optimisers = (
+                torch.optim.AdamW(self.actor.parameters(), c.actor_lr, eps=o.eps,
+                                  weight_decay=o.weight_decay),
+                torch.optim.AdamW(self.critic.parameters(), c.critic_lr, eps=o.eps,
+                                  weight_decay=o.weight_decay))
+        return self._optimisers
 
     def _load_from_state_dict(self, state_dict: dict, prefix: str, *args, **kwargs) -> None:
         # Checkpoints written before return normalisation existed lack its statistics.

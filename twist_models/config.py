@@ -133,6 +133,7 @@ class CNNConfig:
 
 
 ACTOR_GRADS = ("dynamics", "reinforce")
+ACTOR_DISTS = ("trunc_normal", "normal")
 CRITIC_HEADS = ("mse", "twohot")
 #: Arithmetic settings of the networks a training step runs: ``float32``; ``bfloat16``
 #: (autocast: weights, optimiser state and what autocast keeps in float32 stay float32);
@@ -154,8 +155,16 @@ class ActorCriticConfig:
     """Actor network."""
     critic: MLPConfig = field(default_factory=MLPConfig)
     """Critic network."""
+    actor_dist: str = "trunc_normal"
+    """The actor's distribution over actions in [-1, 1]: ``trunc_normal`` (DreamerV2: a
+    normal truncated to the box, std in [min_std, 2 + min_std]) or ``normal`` (the first
+    DreamerV3: an untruncated normal about tanh of the mean, std in [min_std, max_std] and
+    ~0.9 at initialisation, its sample clipped to the box with the gradient passed straight
+    through): a truncated actor whose mean sits at a bound keeps no gradient to leave it."""
     min_std: float = 0.1
-    """Minimum standard deviation of the truncated-normal actor."""
+    """Minimum standard deviation of the actor."""
+    max_std: float = 1.0
+    """Maximum standard deviation of the ``normal`` actor."""
     entropy: float = 1e-4
     """Weight of the actor's entropy bonus."""
     slow_target_every: int = 100
@@ -187,6 +196,10 @@ class ActorCriticConfig:
         require_positive(self, "horizon", "slow_target_every", "actor_lr", "critic_lr", "min_std")
         require_choice(self, "critic_head", CRITIC_HEADS)
         require_choice(self, "actor_grad", ACTOR_GRADS)
+        require_choice(self, "actor_dist", ACTOR_DISTS)
+        if self.actor_dist == "normal" and not self.max_std > self.min_std:
+            raise ConfigError(f"max_std must exceed min_std ({self.min_std}) for the normal "
+                              f"actor, got {self.max_std}")
         require_choice(self, "precision", PRECISIONS)
         if self.imag_starts < 0:
             raise ConfigError(f"imag_starts must be >= 0 (0 = every state), got {self.imag_starts}")

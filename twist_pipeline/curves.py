@@ -28,7 +28,7 @@ def figure(out: str | os.PathLike[str], figsize: tuple[float, float], ncols: int
         fig.tight_layout()
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out, bbox_inches="tight")  # long tick labels are not clipped
+        fig.savefig(out)  # tight_layout keeps long tick labels and the suptitle inside
     finally:
         plt.close(fig)
 
