@@ -511,12 +511,21 @@ def test_learning_stops_at_the_first_evaluation_that_reaches_learn_until_return(
         collect_preset("tiny", learn_until_return=990.0, eval_episodes=0)
 
 
-def test_a_resumed_run_may_evaluate_at_another_cadence(tmp_path: Path) -> None:
+def test_a_resumed_run_may_evaluate_at_another_cadence_and_a_finished_one_returns_at_once(
+        tmp_path: Path, monkeypatch) -> None:
+    import twist_pipeline.collect as collect_module
+
     config = collect_preset("tiny", frames=300, learn_frames=600, eval_every=100)
     collect(tmp_path, config)
     slower = dataclasses.replace(config, frames=700,
                                  evaluation=TeacherEvalConfig(every=200, episodes=1))
-    collect(tmp_path, slower, resume=True)
+    finished = collect(tmp_path, slower, resume=True)
+    # Resumed again with nothing left to do, no simulator starts (it would raise here).
+    monkeypatch.setattr(collect_module, "TaskEnv", None)
+    assert collect(tmp_path, dataclasses.replace(slower, compile="on"), resume=True) == finished
+    assert collect(tmp_path, dataclasses.replace(slower, frames=500), resume=True) == finished
+    with pytest.raises(TypeError):  # more frames: the run goes on
+        collect(tmp_path, dataclasses.replace(slower, frames=800), resume=True)
     evals = pd.read_csv(tmp_path / "collect" / "collect-000" / "eval.csv")
     # The evaluation due when the run stopped keeps its frame; the new cadence follows it.
     assert evals["frames"].tolist() == [100, 200, 300, 400, 600]

@@ -69,7 +69,14 @@ from twist_models.networks import single_threaded
 from twist_models.teacher import BEST_TEACHER, FINAL_TEACHER, Teacher, load_teacher, save_teacher
 from twist_pipeline.acting import ImageAgent, RandomPushes, StateAgent
 from twist_pipeline.curves import plot_learning_curves
-from twist_pipeline.runlog import RunFolder, TensorBoardLog, append_csv, check_output
+from twist_pipeline.runlog import (
+    RunFolder,
+    TensorBoardLog,
+    append_csv,
+    check_output,
+    record_section,
+    resume_conflicts,
+)
 from twist_sim.randomisation import DR_PRESETS, TRAINING_DR, Dynamics, dr_preset
 from twist_sim.render import DRRenderer, FrameRenderer
 from twist_sim.render_process import RenderProcess
@@ -456,6 +463,9 @@ def collect(out: str | os.PathLike[str], config: CollectConfig, shard: str = "co
     path = shard_path(out, shard)
     folder = run_dir(out, shard)
     _check_output(out, path, folder, config, resume)
+    if resume and (finished := _finished_run(folder, path, config)) is not None:
+        log.info("%s already holds the %d frames asked for; nothing to do", path, finished.frames)
+        return finished
     seed = shard_seed(config.seed, shard)
     env = TaskEnv(config.task, config.action_repeat, seed=seed, max_steps=config.max_steps)
     dr_config = dr_preset(config.dr, config.backgrounds)
@@ -535,6 +545,22 @@ def _check_output(out: Path, path: Path, folder: Path, config: CollectConfig,
     if resume:
         _run_folder(folder).open(config, True, extendable,
                                  "--frames and --set " + ", ".join(extendable[1:]))
+
+
+def _finished_run(folder: Path, path: Path, config: CollectConfig) -> CollectSummary | None:
+    """The summary a finished run left in ``folder`` if resuming it with ``config`` would do
+    nothing (the same config but for ``compile`` and ``frames`` no more than it collected,
+    its shard holding the episodes it summed up): then no simulator, renderer or teacher
+    starts only to find so."""
+    record = _run_folder(folder).stored()
+    if record is None or not (folder / "summary.json").exists() or not path.exists():
+        return None
+    done = json.loads((folder / "summary.json").read_text())
+    before = record_section(record, "collect", CollectConfig)
+    if (resume_conflicts(before, config, ("frames", "compile")) or config.frames > done["frames"]
+            or ShardReader(path).n_episodes != done["episodes"]):
+        return None
+    return CollectSummary(**{**done, **{k: Path(done[k]) for k in ("shard", "run_dir", "teacher")}})
 
 
 def _run_folder(folder: Path) -> RunFolder:
