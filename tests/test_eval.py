@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -421,17 +420,14 @@ def test_an_imported_policy_is_evaluated_like_a_scripted_one(gl, tmp_path, monke
     with pytest.raises(AgentError, match="has no 'pull'"):
         load_agent("my_policies:pull")
 
-    # From the CLI: the task comes from the policy, the name from its attribute.
-    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
-    result = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent", "my_policies:push",
-                             "--episodes", "1", "--max-steps", "5", "--out", str(tmp_path / "e")],
-                            capture_output=True, text=True, timeout=300, env=env)
+    # From the CLI (in this process, the module on its path as PYTHONPATH would put it): the
+    # task comes from the policy, the name from its attribute.
+    result = run_command("eval", "--agent", "my_policies:push", "--episodes", "1",
+                         "--max-steps", "5", "--out", str(tmp_path / "e"))
     assert result.returncode == 0, result.stderr
     table = pd.read_csv(tmp_path / "e" / "episodes.csv")
     assert list(table["agent"]) == ["push"] and list(table["kind"]) == ["policy"]
-    bad = subprocess.run([sys.executable, "-m", "twist_cli.eval", "--agent", "my_policies:pull",
-                          "--out", str(tmp_path / "f")], capture_output=True, text=True,
-                         timeout=300, env=env)
+    bad = run_command("eval", "--agent", "my_policies:pull", "--out", str(tmp_path / "f"))
     assert bad.returncode == 2 and "has no 'pull'" in bad.stderr
     assert "Traceback" not in bad.stderr and not (tmp_path / "f").exists()
 

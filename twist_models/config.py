@@ -482,7 +482,8 @@ PRESETS: dict[str, dict[str, Any]] = {
 _AC_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
     "quick": {"actor": MLPConfig(layers=2, units=256), "critic": MLPConfig(layers=2, units=256)},
-    "tiny": {"actor": _tiny_mlp(), "critic": _tiny_mlp()},
+    # Tests and smoke runs: a short horizon keeps imagination, most of an update, cheap.
+    "tiny": {"actor": _tiny_mlp(), "critic": _tiny_mlp(), "horizon": 5},
 }
 
 
