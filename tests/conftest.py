@@ -180,7 +180,9 @@ def run_command(module: str, *args: str) -> subprocess.CompletedProcess[str]:
     lines = io.StringIO()
     handler = logging.StreamHandler(lines)
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
-    loggers = [logging.getLogger(name) for name in ("twist_data", "twist_models")]
+    from twist_cli.common import LIBRARY_PACKAGES
+
+    loggers = [logging.getLogger(name) for name in LIBRARY_PACKAGES]
     levels = [logger.level for logger in loggers]
     logging.getLogger().addHandler(handler)
     try:
