@@ -342,8 +342,9 @@ class CollectConfig:
 
 
 COLLECT_PRESETS: dict[str, CollectConfig] = {
-    # DreamerV2 DMC (configs.yaml `dmc`): prefill 5000 agent steps = 10K frames, pretrain
-    # 100, train_every 5; 500K frames, eval every 10K frames.
+    # DreamerV2 DMC (configs.yaml `dmc_proprio`/`dmc_vision`): pretrain 100, train_every 5;
+    # 500K frames, eval every 10K frames. Its prefill is 1,000 agent steps (2K frames); this
+    # preset's 10K frames is a departure that runs recorded with it keep.
     # Rendered anti-aliased (supersample 2), as dm_control's own 4x multisampled render is:
     # without it cartpole's pole breaks into stray pixels at 64x64; the same holds for quick.
     "paper": CollectConfig(model="paper", frames=500_000, evaluation=TeacherEvalConfig(10_000, 10),
