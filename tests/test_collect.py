@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -34,11 +35,12 @@ from twist_pipeline.collect import (
     COLLECT_PRESETS,
     CollectConfig,
     CollectError,
+    CollectSummary,
     TeacherEvalConfig,
-    collect,
     collect_preset,
     shard_seed,
 )
+from twist_pipeline.collect import collect as collect_default
 from twist_pipeline.runlog import recorded_config
 from twist_sim import tasks
 from twist_sim.errors import UnknownTaskError
@@ -47,6 +49,13 @@ from twist_sim.tasks import TaskEnv
 
 pytestmark = pytest.mark.usefixtures("gl")
 COLLECT = [sys.executable, "-m", "twist_cli.collect"]
+
+
+def collect(out: Path, config: CollectConfig, **kwargs: Any) -> CollectSummary:
+    """:func:`twist_pipeline.collect.collect` rendering in this process: the same pixels as the
+    default render process (tests/test_render.py), without starting an interpreter for each
+    run; the tests that run the command (and the first below) keep the render process."""
+    return collect_default(out, config, **{"render_process": False, **kwargs})
 
 
 def _resimulate(task: str, dataset, index: int) -> tuple[np.ndarray, np.ndarray]:
@@ -62,7 +71,7 @@ def _resimulate(task: str, dataset, index: int) -> tuple[np.ndarray, np.ndarray]
 
 def test_tiny_run_writes_a_verified_dataset_that_resimulates(tmp_path: Path) -> None:
     config = collect_preset("tiny")
-    summary = collect(tmp_path, config)
+    summary = collect_default(tmp_path, config)
     assert summary.frames >= config.frames and summary.episodes == summary.frames // 100
     assert verify_dataset(tmp_path).ok
     dataset = open_dataset(tmp_path)
