@@ -328,6 +328,13 @@ def test_a_time_limit_stops_with_a_deployable_student_and_the_run_resumes(
     resumed = distil(dataset, run, config, teacher=teacher, resume=True)
     assert resumed.stopped == "done" and resumed.updates == 10
     assert list(pd.read_csv(run / "metrics.csv")["updates"]) == [4, 5, 10]
+    # Resumed once more with nothing to do: its summary as written, D never opened.
+    written = (run / "summary.json").read_text()
+    monkeypatch.setattr(stage, "_open_inputs", None)
+    assert distil(dataset, run, config, teacher=teacher, resume=True) == resumed
+    assert (run / "summary.json").read_text() == written
+    with pytest.raises(TypeError):  # more updates: the run goes on
+        distil(dataset, run, dataclasses.replace(config, steps=12), teacher=teacher, resume=True)
     with pytest.raises(DistilError, match="time limit must be a positive number of seconds, "
                                           "got 0"):
         distil(dataset, tmp_path / "never", config, teacher=teacher, time_limit=0)

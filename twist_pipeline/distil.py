@@ -93,6 +93,8 @@ from twist_pipeline.runlog import (
     RunFolder,
     TensorBoardLog,
     append_csv,
+    record_section,
+    resume_conflicts,
 )
 
 log = logging.getLogger(__name__)
@@ -177,6 +179,10 @@ def distil(dataset: str | os.PathLike[str], out: str | os.PathLike[str], config:
         raise DistilError(f"the time limit must be a positive number of seconds, got {time_limit}")
     torch_device = resolve_device(device)
     out, dataset_path = Path(out), Path(dataset)
+    if resume and (finished := _finished_run(out, dataset_path, teacher, config)) is not None:
+        log.info("%s already holds the %d updates asked for; nothing to do", out,
+                 finished.updates)
+        return finished
     data = _open_inputs(dataset_path, config)
     teacher_path = Path(teacher) if teacher is not None else find_teacher(dataset_path)
     teacher_model, _ = load_teacher(teacher_path, data.spec.state_dim, data.spec.action_dim)
@@ -226,6 +232,25 @@ def _open_inputs(path: Path, config: DistilConfig) -> MatchingDataset:
 
 def _run_folder(out: Path) -> RunFolder:
     return RunFolder(out, "distil", DistilError, "a distillation run")
+
+
+def _finished_run(out: Path, dataset: Path, teacher: str | os.PathLike[str] | None,
+                  config: DistilConfig) -> DistilSummary | None:
+    """The summary a finished run left in ``out`` if resuming it would do nothing: it did every
+    update of the same config (``compute.compile`` aside) on the same D and teacher. Returned
+    as it was written, without reading D or the teacher (nor rewriting the summary)."""
+    record = _run_folder(out).stored()
+    if record is None or not (out / "summary.json").exists():
+        return None
+    done = json.loads((out / "summary.json").read_text())
+    same_inputs = (Path(record.get("dataset", "")) == dataset
+                   and (teacher is None or Path(record.get("teacher", "")) == Path(teacher)))
+    before = record_section(record, "distil", DistilConfig)
+    if (done.get("stopped") != "done" or not same_inputs
+            or resume_conflicts(before, config, ("compute.compile",))):
+        return None
+    paths = ("out", "student", "agent", "teacher")
+    return DistilSummary(**{**done, **{k: Path(done[k]) for k in paths}})
 
 
 def _check_output(out: Path, config: DistilConfig, student: StudentConfig, resume: bool
