@@ -760,8 +760,10 @@ def test_a_resume_accepts_gains_measured_again_to_the_last_digits_only(
     assert json.loads((tmp_path / "run" / "config.json").read_text()
                       )["student"]["readout"]["gains"] == list(gains)
     monkeypatch.setattr(readout_recipe, "pair_readout", measured_again(1 + 1e-3))
+    # A resume with updates left to do (one with none returns before measuring anything).
     with pytest.raises(DistilError, match="the student's sizes differ"):
-        distil(dataset, tmp_path / "run", longer, teacher=teacher_path, resume=True)
+        distil(dataset, tmp_path / "run", dataclasses.replace(longer, frame_steps=9),
+               teacher=teacher_path, resume=True)
 
 
 def test_a_student_saved_with_its_former_key_layout_loads_and_reads_alike(inputs) -> None:
