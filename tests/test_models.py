@@ -461,6 +461,25 @@ def test_tiny_world_model_overfits_a_toy_sequence() -> None:
     assert metrics["reward_loss"].item() - 0.5 * np.log(2 * np.pi) < 0.02
 
 
+def test_reward_scale_weighs_the_reward_terms_alone() -> None:
+    base = teacher_preset("tiny", 5, 2).world_model
+    losses = {}
+    for scale in (1.0, 3.0):
+        for overshoot in (0, 4):
+            torch.manual_seed(0)
+            model = WorldModel(dataclasses.replace(base, reward_scale=scale, overshoot=overshoot))
+            torch.manual_seed(1)
+            loss, _, metrics = model.loss(_batch())
+            losses[scale, overshoot] = (loss.item(), metrics)
+    # Without overshooting the difference is exactly the one-step reward term, twice.
+    (one, metrics), (three, _) = losses[1.0, 0], losses[3.0, 0]
+    assert three - one == pytest.approx(2 * metrics["reward_loss"].item(), rel=1e-5)
+    # With it, the overshooting reward term is weighed too: the difference grows.
+    assert losses[3.0, 4][0] - losses[1.0, 4][0] > three - one + 1e-6
+    with pytest.raises(ConfigError, match="reward_scale"):
+        dataclasses.replace(base, reward_scale=0.0)
+
+
 def test_the_normal_actor_is_dreamerv3s_clipped_normal() -> None:
     from twist_models.actor_critic import Actor, ClippedNormal
 

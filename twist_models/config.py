@@ -247,6 +247,9 @@ class WorldModelConfig:
     """Adam learning rate of the world model."""
     kl_scale: float = 1.0
     """Weight of the KL term in the world-model loss."""
+    reward_scale: float = 1.0
+    """Weight of the reward terms, one-step and overshooting (DreamerV2: 1): a task whose best
+    rewards are rare in D (walker-walk's walking) may need them fitted beyond their share."""
     recon: str = "obs"
     """What the decoder reconstructs: ``obs`` (what the encoder read) or ``state`` (the
     privileged state from images: the paper's State Recon baseline)."""
@@ -282,7 +285,7 @@ class WorldModelConfig:
             raise ConfigError(f"obs must be 'state' or 'image', got {self.obs!r}")
         if self.recon not in ("obs", "state"):
             raise ConfigError(f"recon must be 'obs' or 'state', got {self.recon!r}")
-        require_positive(self, "action_dim", "model_lr", "overshoot_starts")
+        require_positive(self, "action_dim", "model_lr", "overshoot_starts", "reward_scale")
         require_non_negative(self, "overshoot", "state_noise")
         if self.state_noise and self.obs != "state":
             raise ConfigError(f"state_noise perturbs what a state encoder reads, got "

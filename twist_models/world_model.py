@@ -80,7 +80,7 @@ class WorldModel(nn.Module):
         else:
             recon = gaussian_nll(self.decoder(feature), preprocess_image(obs), 3).mean()
         reward = gaussian_nll(self.reward_head(feature).squeeze(-1), batch["reward"], 0).mean()
-        loss = c.kl_scale * kl_loss + recon + reward
+        loss = c.kl_scale * kl_loss + recon + c.reward_scale * reward
         metrics = {"kl": kl, "recon_loss": recon.detach(), "reward_loss": reward.detach()}
         if self.discount_head is not None:
             continues = (~batch["is_terminal"].bool()).float()
@@ -117,7 +117,7 @@ class WorldModel(nn.Module):
         # A rollout is compared with the recording only until the recording's next episode.
         valid = (batch["is_first"][rows, steps].int().cumsum(1) == 0).float()
         nll = (gaussian_nll(self.decoder(feature), self.state_target(batch["state"][rows, steps]))
-               + gaussian_nll(self.reward(feature), batch["reward"][rows, steps], 0))
+               + c.reward_scale * gaussian_nll(self.reward(feature), batch["reward"][rows, steps], 0))
         return (nll * valid).sum() / valid.sum().clamp_min(1.0)
 
     def state_target(self, state: torch.Tensor) -> torch.Tensor:
